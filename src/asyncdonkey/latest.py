@@ -1,0 +1,54 @@
+"""Latest-value cells: how background producers hand data to the tick without making it wait.
+
+A producer (a hardware poller, a camera thread, a serial reader) calls :meth:`Latest.publish`; the tick reads
+:attr:`Latest.sample`. Publishing swaps one attribute to a new immutable :class:`Sample`, which is atomic
+under the GIL, so readers in other threads never see a value paired with the wrong timestamp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+__all__ = ["Latest", "Sample"]
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, slots=True)
+class Sample(Generic[T]):
+    """One published value, when it was taken (runtime clock, seconds) and its sequence number (1, 2, ...)."""
+
+    value: T
+    timestamp: float
+    seq: int
+
+    def age(self, now: float) -> float:
+        """Seconds since this sample was taken, on the same clock as ``now``."""
+        return now - self.timestamp
+
+
+class Latest(Generic[T]):
+    """Holds the newest :class:`Sample` of a stream. Readers never block; staleness is measurable."""
+
+    __slots__ = ("sample",)
+
+    def __init__(self) -> None:
+        self.sample: Sample[T] | None = None
+
+    def publish(self, value: T, timestamp: float) -> Sample[T]:
+        prev = self.sample
+        sample = Sample(value, timestamp, 1 if prev is None else prev.seq + 1)
+        self.sample = sample
+        return sample
+
+    @property
+    def value(self) -> T | None:
+        s = self.sample
+        return None if s is None else s.value
+
+    def age(self, now: float) -> float:
+        """Seconds since the newest sample; ``inf`` before the first."""
+        s = self.sample
+        return math.inf if s is None else now - s.timestamp

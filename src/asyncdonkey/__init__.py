@@ -1,3 +1,28 @@
-"""asyncdonkey: an asyncio-native robot runtime that runs Donkeycar parts unchanged."""
+"""asyncdonkey: an asyncio-native robot runtime that runs Donkeycar parts unchanged.
+
+The public core is small: :class:`Vehicle` (the drive loop), :class:`Memory` (named channels),
+:class:`Poller` (hardware reads at their own rate off the loop thread) and the clock helpers.
+"""
+
+from .clock import Clock, get_clock
+from .latest import Latest, Sample
+from .loop import DriveReport, OutputCountError, PartError, PartSpecError, Vehicle
+from .memory import Memory
+from .poller import Poller
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "Clock",
+    "DriveReport",
+    "Latest",
+    "Memory",
+    "OutputCountError",
+    "PartError",
+    "PartSpecError",
+    "Poller",
+    "Sample",
+    "Vehicle",
+    "__version__",
+    "get_clock",
+]

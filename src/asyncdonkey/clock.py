@@ -37,19 +37,22 @@ class Clock:
         self.is_virtual: bool = bool(getattr(loop, "is_virtual_clock", False))
         self.now: Callable[[], float] = loop.time if self.is_virtual else time.monotonic
 
-    async def sleep_until(self, deadline: float) -> None:
-        """Return at (never before) ``deadline`` on this clock.
+    async def sleep_until(self, deadline: float, wake: asyncio.Future[None] | None = None) -> None:
+        """Return at (never before) ``deadline`` on this clock, or as soon as ``wake`` is done.
 
-        On the virtual loop the timer is armed at exactly ``deadline`` so no float error accumulates.
-        On a real loop we sleep on the loop's timer until just before the deadline and then yield
-        until it has passed, which keeps lateness well under a millisecond even on uvloop.
+        ``wake`` lets another thread or a signal handler cut the wait short (``Vehicle.stop()`` completes it
+        with ``loop.call_soon_threadsafe``). On the virtual loop the timer is armed at exactly ``deadline`` so
+        no float error accumulates. On a real loop we sleep on the loop's timer until just before the
+        deadline and then yield until it has passed, which keeps lateness well under a millisecond on
+        uvloop, whose timers round to whole milliseconds.
         """
+        loop = self._loop
         if self.is_virtual:
-            if deadline <= self._loop.time():
+            if deadline <= loop.time():
                 await asyncio.sleep(0)
                 return
-            fut = self._loop.create_future()
-            handle = self._loop.call_at(deadline, _set_done, fut)
+            fut = wake if wake is not None else loop.create_future()
+            handle = loop.call_at(deadline, _set_done, fut)
             try:
                 await fut
             finally:
@@ -58,9 +61,20 @@ class Clock:
         now = time.monotonic
         remaining = deadline - now()
         while remaining > _SPIN_BELOW_S:
-            await asyncio.sleep(remaining - _SPIN_BELOW_S)
+            if wake is not None and wake.done():
+                return
+            fut = loop.create_future()
+            handle = loop.call_later(remaining - _SPIN_BELOW_S, _set_done, fut)
+            if wake is not None:
+                wake.add_done_callback(lambda _w, f=fut: _set_done(f))
+            try:
+                await fut
+            finally:
+                handle.cancel()
             remaining = deadline - now()
         while now() < deadline:
+            if wake is not None and wake.done():
+                return
             await asyncio.sleep(0)
 
     async def sleep(self, seconds: float) -> None:
@@ -68,7 +82,7 @@ class Clock:
         await self.sleep_until(self.now() + seconds)
 
 
-def _set_done(fut: asyncio.Future[None]) -> None:
+def _set_done(fut: asyncio.Future[None], *_: object) -> None:
     if not fut.done():
         fut.set_result(None)
 

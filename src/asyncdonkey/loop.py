@@ -143,6 +143,25 @@ class Vehicle:
         self._errlog = LogThrottle(1.0)
         self._age_now: Callable[[], float] = self.mem._now
 
+    @classmethod
+    def from_donkeycar(cls, dk_vehicle: Any) -> Vehicle:
+        """A Vehicle with the same parts, channels and memory contents as a Donkeycar ``Vehicle``.
+
+        Lets an existing ``manage.py``-style builder run on this loop unchanged: build the Donkeycar vehicle as
+        before, then drive ``Vehicle.from_donkeycar(v)``.
+        """
+        v = cls()
+        v.mem.update(dict(getattr(dk_vehicle.mem, "d", {})))
+        for entry in dk_vehicle.parts:
+            v.add(
+                entry["part"],
+                inputs=list(entry.get("inputs") or []),
+                outputs=list(entry.get("outputs") or []),
+                threaded=entry.get("thread") is not None,
+                run_condition=entry.get("run_condition") or None,
+            )
+        return v
+
     # ------------------------------------------------------------------------------------------ add()
     def add(
         self,

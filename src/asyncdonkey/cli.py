@@ -74,9 +74,7 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
     if not isinstance(vehicle, Vehicle):
         converted = _from_donkeycar(vehicle)
         if converted is None:
-            raise CarFileError(
-                f"{p}: build() returned {type(vehicle).__name__}, expected an asyncdonkey.Vehicle"
-            )
+            raise CarFileError(f"{p}: build() returned {type(vehicle).__name__}, expected an asyncdonkey.Vehicle")
         vehicle = converted
     return vehicle, module
 
@@ -115,12 +113,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     run = sub.add_parser("run", help="drive a car file (a Python file whose build() returns a Vehicle)")
     run.add_argument("car", help="path to the car file, e.g. examples/car.py")
-    run.add_argument("--hz", type=_positive_float, default=None,
-                     help="drive loop rate (default: the file's DRIVE_LOOP_HZ, else 20)")
+    run.add_argument(
+        "--hz",
+        type=_positive_float,
+        default=None,
+        help="drive loop rate (default: the file's DRIVE_LOOP_HZ, else 20)",
+    )
     run.add_argument("--max-loops", type=_non_negative_int, default=None, help="stop after N ticks")
     run.add_argument("--duration", type=_positive_float, default=None, help="stop after S seconds")
-    run.add_argument("--verbose", action="store_true",
-                     help="jitter warnings and the profiler table every 200 loops")
+    run.add_argument("--verbose", action="store_true", help="jitter warnings and the profiler table every 200 loops")
     run.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
     run.epilog = "Arguments after a lone -- are passed to the car's build()."
     try:

@@ -230,8 +230,10 @@ class Vehicle:
             fn = getattr(part, "run", None)
             method = "run"
             if fn is None or not callable(fn):
-                raise PartSpecError(f"{where}: a part needs a run() method (or threaded=True with update()"
-                                    f" and run_threaded()); {label} has none")
+                raise PartSpecError(
+                    f"{where}: a part needs a run() method (or threaded=True with update()"
+                    f" and run_threaded()); {label} has none"
+                )
         is_coro = inspect.iscoroutinefunction(fn)
         if executor and is_coro:
             raise PartSpecError(f"{where}: executor=True is for a sync {method}(); {label}.{method} is async")
@@ -574,8 +576,11 @@ class Vehicle:
         for e, t in self._threads:
             await loop.run_in_executor(None, t.join, e.shutdown_timeout)
             if t.is_alive():
-                logger.error("part %r: update() thread still running %.1f s after shutdown()",
-                             e.name, e.shutdown_timeout)
+                logger.error(
+                    "part %r: update() thread still running %.1f s after shutdown()",
+                    e.name,
+                    e.shutdown_timeout,
+                )
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
@@ -616,8 +621,10 @@ class Vehicle:
         Runs on uvloop when it is installed (unless ``use_uvloop=False``). Ctrl-C and SIGTERM stop the car
         cleanly: the current tick finishes, every part is shut down, and the report is logged.
         """
-        report = run_blocking(self.run_with_signals(rate_hz, max_loop_count, duration=duration, verbose=verbose),
-                              use_uvloop=use_uvloop)
+        report = run_blocking(
+            self.run_with_signals(rate_hz, max_loop_count, duration=duration, verbose=verbose),
+            use_uvloop=use_uvloop,
+        )
         return report.loops, report.elapsed_s
 
     async def run_with_signals(

@@ -87,8 +87,13 @@ class Poller(Generic[T]):
                     t = now()
                     if self._log.allow("read", t):
                         held = self._log.take_suppressed("read")
-                        logger.warning("poller %r: read failed (%d errors so far%s): %r", self.name,
-                                       self.errors, f", {held} not logged" if held else "", exc)
+                        logger.warning(
+                            "poller %r: read failed (%d errors so far%s): %r",
+                            self.name,
+                            self.errors,
+                            f", {held} not logged" if held else "",
+                            exc,
+                        )
                 else:
                     self.latest.publish(value, now())
                     self.reads += 1

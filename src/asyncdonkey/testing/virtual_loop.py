@@ -67,8 +67,15 @@ class _SeqTimerHandle(events.TimerHandle):
 
     __slots__ = ("_seq",)
 
-    def __init__(self, seq: int, when: float, callback: Callable[..., Any], args: tuple[Any, ...],
-                 loop: asyncio.AbstractEventLoop, context: Any = None) -> None:
+    def __init__(
+        self,
+        seq: int,
+        when: float,
+        callback: Callable[..., Any],
+        args: tuple[Any, ...],
+        loop: asyncio.AbstractEventLoop,
+        context: Any = None,
+    ) -> None:
         super().__init__(when, callback, args, loop, context)
         self._seq = seq
 
@@ -113,8 +120,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     #: read by :func:`asyncdonkey.clock.get_clock` to take time from the loop itself
     is_virtual_clock = True
 
-    def __init__(self, *, start: float = 0.0, deadlock_grace_s: float = 1.0,
-                 stall_timeout_s: float = 60.0) -> None:
+    def __init__(self, *, start: float = 0.0, deadlock_grace_s: float = 1.0, stall_timeout_s: float = 60.0) -> None:
         selector = _VirtualSelector()
         super().__init__(selector)
         self._virtual_time = float(start)

@@ -38,6 +38,8 @@ logger = logging.getLogger(__name__)
 
 OnError = Literal["stop", "continue"]
 AGE_SUFFIX = "@age"
+#: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
+_TIME_EPS = 1e-9
 
 
 class PartSpecError(ValueError):
@@ -509,7 +511,7 @@ class Vehicle:
             loops += 1
             dur = end - start
             over = dur - period
-            if over > 0:
+            if over > _TIME_EPS:
                 overruns += 1
                 overrun_rec(over)
                 if verbose and jitter_log.allow("jitter", end):

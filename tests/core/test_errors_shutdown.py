@@ -210,3 +210,20 @@ async def test_run_refuses_bad_arguments_and_reentry():
     with pytest.raises(RuntimeError, match="already running"):
         await v.run(20, 1)
     await task
+
+
+def test_start_is_blocking_on_uvloop_and_returns_count_and_seconds():
+    import uvloop
+
+    loops_seen = []
+
+    class Which:
+        def run(self):
+            loops_seen.append(type(asyncio.get_running_loop()))
+
+    v = Vehicle()
+    v.add(Which())
+    count, seconds = v.start(rate_hz=100, max_loop_count=5)
+    assert count == 5
+    assert 0.035 <= seconds < 2.0  # five ticks at 100 Hz: at least four periods
+    assert loops_seen == [uvloop.Loop] * 5

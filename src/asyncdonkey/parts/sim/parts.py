@@ -46,7 +46,9 @@ class SimCar:
     Args:
         sim: the simulation to run (default: ``Simulator(respawn_after_s=1.0)`` on the default track).
         camera_hz: camera frame rate (Donkeycar's ``CAMERA_FRAMERATE``, default 20).
-        max_step: longest physics step in seconds when catching up to the clock.
+        max_step: longest physics step in seconds when catching up to the clock (lap counting and off-track
+            detection look at the car after each step).
+        time_quantum: the simulation's time grid (s); commands take effect on it.
 
     Attributes:
         camera: the camera part (no inputs; output ``cam/image_array``).
@@ -55,11 +57,20 @@ class SimCar:
         frames_rendered, frames_dropped: counts (dropped: camera deadlines skipped because the loop stalled).
     """
 
-    def __init__(self, sim: Simulator | None = None, *, camera_hz: float = 20.0, max_step: float = 0.02) -> None:
+    def __init__(
+        self,
+        sim: Simulator | None = None,
+        *,
+        camera_hz: float = 20.0,
+        max_step: float = 0.02,
+        time_quantum: float = 0.001,
+    ) -> None:
         if not (camera_hz > 0 and math.isfinite(camera_hz)):
             raise ValueError(f"SimCar: camera_hz must be a positive number, got {camera_hz!r}")
-        if not max_step > 0:
-            raise ValueError(f"SimCar: max_step must be positive seconds, got {max_step!r}")
+        if not 0 < time_quantum <= max_step:
+            raise ValueError(
+                f"SimCar: need 0 < time_quantum <= max_step (seconds), got {time_quantum!r} and {max_step!r}"
+            )
         self.sim = sim if sim is not None else Simulator(respawn_after_s=1.0)
         self.camera_hz = float(camera_hz)
         self.max_step = float(max_step)
@@ -68,8 +79,11 @@ class SimCar:
         self.frames_dropped = 0
         self.angle = 0.0
         self.throttle = 0.0
+        self.time_quantum = float(time_quantum)
+        self._chunk = max(1, round(max_step / time_quantum))
         self._clock: Clock | None = None
-        self._sim_time: float | None = None
+        self._anchor: float | None = None
+        self._steps = 0
         self._running = False
         self.camera = SimCamera(self)
         self.telemetry = SimTelemetry(self)
@@ -82,19 +96,26 @@ class SimCar:
         return clock.now()
 
     def advance_to(self, t: float) -> None:
-        """Integrate the physics with the current command up to clock time ``t``."""
-        if self._sim_time is None:
-            self._sim_time = t
+        """Integrate the physics with the current command up to clock time ``t``.
+
+        The simulation runs on a grid of ``time_quantum`` seconds counted from its anchor (the task's start),
+        so the step sizes are exact multiples of the quantum whatever the clock's absolute value: a drive
+        gives bit-identical results whether the clock starts at 0 or at 1e6.
+        """
+        if self._anchor is None:
+            self._anchor = t
             return
-        remaining = t - self._sim_time
-        if remaining <= 0:
+        n = round((t - self._anchor) / self.time_quantum)
+        k = n - self._steps
+        if k <= 0:
             return
-        step = self.sim.step
-        n = math.ceil(remaining / self.max_step - 1e-9)
-        dt = remaining / n
-        for _ in range(n):
-            step(dt, self.angle, self.throttle)
-        self._sim_time = t
+        step, q, chunk = self.sim.step, self.time_quantum, self._chunk
+        full, rest = divmod(k, chunk)
+        for _ in range(full):
+            step(chunk * q, self.angle, self.throttle)
+        if rest:
+            step(rest * q, self.angle, self.throttle)
+        self._steps = n
 
     # --------------------------------------------------------------------------------- part API
     def run(self, angle: Any, throttle: Any) -> None:
@@ -114,7 +135,7 @@ class SimCar:
         self._running = True
         t0 = clock.now()
         # (Re)anchor the simulation on this loop's clock: a new run may start on a new (virtual) clock.
-        self._sim_time = t0
+        self._anchor, self._steps = t0, 0
         self._publish(t0)
         period_k = 1
         try:

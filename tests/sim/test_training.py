@@ -1,0 +1,56 @@
+"""Training a linear pilot on simulator data: it beats a constant angle on held-out data and drives laps."""
+
+import numpy as np
+import pytest
+
+from asyncdonkey.parts.sim import ScriptedDriver, Simulator
+from asyncdonkey.parts.sim.training import (
+    Perturbation,
+    collect,
+    drive,
+    evaluate,
+    fit_ridge,
+    gray_pool_features,
+    train_pilot,
+)
+
+FEATURES = gray_pool_features
+
+
+@pytest.fixture(scope="module")
+def trained():
+    return train_pilot(FEATURES, frames=900, dagger_rounds=1, dagger_frames=400, seed=0)
+
+
+def test_ridge_recovers_a_linear_map_on_raw_feature_scales():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(300, 12)) * rng.uniform(0.01, 100, 12) + rng.uniform(-50, 50, 12)
+    w = rng.normal(size=(12, 2))
+    y = x @ w + np.array([0.3, -0.2])
+    wf, bf = fit_ridge(x, y, alpha=1e-9)
+    assert np.abs(x @ wf + bf - y).max() < 1e-3 * np.abs(y).max()
+    # a large penalty shrinks towards the mean
+    ws, bs = fit_ridge(x, y, alpha=1e6)
+    assert np.abs(x @ ws + bs - y.mean(axis=0)).max() < 0.01 * np.abs(y - y.mean(axis=0)).max()
+
+
+def test_pilot_beats_a_constant_angle_on_held_out_driving(trained):
+    pilot, report = trained
+    # held out: a different track position, driver seed and pulse sequence than anything trained on
+    sim = Simulator(respawn_after_s=0.5)
+    sim.reset(s=20.0)
+    held = collect(sim, ScriptedDriver(sim.track, seed=99), 400, features=FEATURES, perturb=Perturbation(), seed=7)
+    m = evaluate(pilot, held, report.baseline_angle)
+    assert m["angle_mse"] < 0.5 * m["baseline_angle_mse"], m
+    assert m["throttle_mse"] < 0.01
+
+
+def test_trained_pilot_drives_a_lap_in_closed_loop(trained):
+    pilot, _ = trained
+    sim = Simulator(respawn_after_s=0.5)
+    sim.reset(s=10.0)
+    result = drive(sim, pilot, 30.0)
+    assert result.clean, result
+    assert result.distance > sim.track.length
+    assert result.laps == 1
+    assert result.max_abs_cte < 0.6 * sim.track.half_width

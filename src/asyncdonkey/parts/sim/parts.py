@@ -11,11 +11,14 @@ Wiring (camera and telemetry first, the actuator last, as on a real car)::
 How time works. The simulation follows the runtime clock (:func:`asyncdonkey.clock.get_clock`), so on the
 virtual clock a test drives minutes of laps in a fraction of a second, deterministically. The physics is
 integrated up to "now" whenever something observes or changes the car: each command from the tick (so a
-command takes effect exactly when the tick gives it), each telemetry read, and each camera frame; long gaps
-are split into steps of at most ``max_step`` seconds so lap counting and off-track detection never miss a
-crossing. The camera frame is rendered by :meth:`SimCar.update`, a background task on deadlines
-``t0 + k / camera_hz``, and published into a :class:`~asyncdonkey.latest.Latest` like a real camera's
-newest frame; the camera part returns the newest frame without waiting for one.
+command takes effect exactly when the tick gives it), each telemetry read, and each camera frame. It runs on
+a grid of ``time_quantum`` (1 ms) counted from the task's start, so a drive is bit-identical whatever the
+clock's absolute value, and long gaps are split into steps of at most ``max_step`` seconds so lap counting and
+off-track detection never miss a crossing.
+
+The camera frame is rendered by :meth:`SimCar.update`, a background task on deadlines ``t0 + k / camera_hz``,
+and published into a :class:`~asyncdonkey.latest.Latest` like a real camera's newest frame; the camera part
+returns the newest frame without waiting for one.
 """
 
 from __future__ import annotations

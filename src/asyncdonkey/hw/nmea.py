@@ -124,8 +124,9 @@ def _date(value: str) -> _dt.date | None:
     m = _DATE.fullmatch(value)
     if m is None:
         raise _Malformed(f"date {value!r}")
-    try:
-        return _dt.date(2000 + int(m.group(3)), int(m.group(2)), int(m.group(1)))
+    yy = int(m.group(3))
+    try:  # two-digit years: GPS began in 1980, so 80-99 are 19xx and 00-79 are 20xx
+        return _dt.date((1900 if yy >= 80 else 2000) + yy, int(m.group(2)), int(m.group(1)))
     except ValueError as exc:
         raise _Malformed(f"date {value!r}") from exc
 

@@ -314,7 +314,8 @@ class SerialPort:
         finally:
             t = self._transport
             if t is not None:
-                t.abort()
+                if not t.is_closing():
+                    t.abort()
                 self._detach()
             self._running = False
             self._stopped.set()
@@ -335,8 +336,9 @@ class SerialPort:
             try:
                 await asyncio.wait_for(self._stopped.wait(), 1.0)
             except TimeoutError:
-                if self._transport is not None:
-                    self._transport.abort()
+                t = self._transport
+                if t is not None:
+                    _force_close(t)
         task = self._task
         if task is not None and not task.done():
             try:
@@ -631,6 +633,13 @@ async def _wait_briefly(lost: asyncio.Future[Any], transport: asyncio.Transport)
     try:
         await asyncio.wait_for(asyncio.shield(lost), 0.5)
     except TimeoutError:
+        _force_close(transport)
+
+
+def _force_close(transport: asyncio.Transport) -> None:
+    """Abort a transport whose graceful close is stuck behind unsent data (pyserial-asyncio's ``close`` waits
+    for the write buffer to drain; a device that stopped reading never drains it)."""
+    if getattr(transport, "_loop", None) is not None:  # not yet finished closing
         transport.abort()
 
 

@@ -173,6 +173,12 @@ class ArduinoEncoder:
 
     def _restart_stream(self, port: SerialPort) -> None:
         self.stream_restarts += 1
+        logger.info(
+            "encoder %r: no reading for %.2f s; asking for the stream again (#%d)",
+            port.name,
+            self.watchdog_s,
+            self.stream_restarts,
+        )
         port.write(self._stream_cmd)
 
     async def close(self) -> None:

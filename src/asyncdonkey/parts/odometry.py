@@ -114,6 +114,7 @@ class Odometer:
         encoder_index: which encoder of a two-encoder board (0 or 1).
         smoothing_count: readings the velocity is averaged over (``ODOM_SMOOTHING``).
         stream_ms: the board's continuous-mode period.
+        watchdog_s: silence after which the stream is asked for again.
     """
 
     def __init__(
@@ -129,6 +130,7 @@ class Odometer:
         encoder_index: int = 0,
         smoothing_count: int = 1,
         stream_ms: int = 16,
+        watchdog_s: float = 0.5,
     ) -> None:
         self.meters_per_tick = meters_per_tick(mm_per_tick, ticks_per_meter, encoder_ppr, wheel_radius)
         if direction_mode not in _MODES:
@@ -140,7 +142,11 @@ class Odometer:
             raise ValueError(f"Odometer: encoder_index must be 0 or 1, got {encoder_index!r}")
         if not (isinstance(smoothing_count, int) and smoothing_count >= 1):
             raise ValueError(f"Odometer: smoothing_count must be an int >= 1, got {smoothing_count!r}")
-        self.encoder = port if isinstance(port, ArduinoEncoder) else ArduinoEncoder(port, baudrate, stream_ms=stream_ms)
+        self.encoder = (
+            port
+            if isinstance(port, ArduinoEncoder)
+            else ArduinoEncoder(port, baudrate, stream_ms=stream_ms, watchdog_s=watchdog_s)
+        )
         self.direction_mode = direction_mode
         self.encoder_index = encoder_index
         self.smoothing_count = smoothing_count

@@ -11,7 +11,15 @@ adapter. Each peer:
   ``/dev/serial/by-id``. :meth:`PtyPeer.unplug` closes the pty pair and removes the link (the driver's read
   fails, reopening fails); :meth:`PtyPeer.plug` opens a new pty pair and points the link at it, so a driver
   that reconnects to the same path finds the device again;
-* records every byte the driver sent (:attr:`PtyPeer.received`) so tests can assert exact bytes on the wire.
+* records every byte the driver sent (:attr:`PtyPeer.received`) so tests can assert exact bytes on the wire;
+* makes its writes **visible before returning**: Linux hands pty data to the reading side from a kernel
+  worker, a few microseconds (or, on a loaded machine, milliseconds) after ``write()``. On a virtual clock
+  that gap is enough for the loop to see "nothing readable" and jump time ahead, so data would arrive late in
+  virtual time by a random number of timers. After each write the peer spins (bounded by ``settle_s`` of
+  real time) until the bytes are readable on the driver's side; the driver runs on the same thread and
+  cannot read meanwhile, so the check is exact. Commands the *driver* writes still reach the peer after
+  that worker's delay, which on a virtual clock can be several timer jumps: tests should not depend on
+  the exact virtual time a command arrives (wait for the device's first answer instead).
 
 The protocol encoders here are written independently of the drivers in :mod:`asyncdonkey.hw` (a shared
 encoder would hide a bug common to both sides).
@@ -30,11 +38,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as _dt
+import fcntl
 import math
 import os
 import re
 import shutil
+import struct
 import tempfile
+import termios
+import time
 import tty
 from collections.abc import Callable
 
@@ -59,6 +71,8 @@ class PtyPeer:
 
     #: bytes held while the pty is full; beyond this output is dropped and counted
     max_pending = 1 << 16
+    #: real seconds a write may wait for the kernel to make it readable on the driver's side (see above)
+    settle_s = 0.05
 
     def __init__(self, name: str = "peer", *, link_dir: str | None = None) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
@@ -154,11 +168,13 @@ class PtyPeer:
         if self._pending:
             self._queue(data)
             return
+        before = self._readable_by_driver()
         try:
             n = os.write(self.master_fd, data)
         except BlockingIOError:
             n = 0
         self.bytes_sent += n
+        self._settle(before, n)
         if n < len(data):
             self._queue(data[n:])
 
@@ -175,15 +191,40 @@ class PtyPeer:
     def _writable(self) -> None:
         if self.master_fd is None:
             return
+        before = self._readable_by_driver()
         try:
             n = os.write(self.master_fd, self._pending)
         except BlockingIOError:
             return
         self.bytes_sent += n
+        self._settle(before, n)
         del self._pending[:n]
         if not self._pending and self._loop is not None:
             self._loop.remove_writer(self.master_fd)
             self._writer_on = False
+
+    def _readable_by_driver(self) -> int:
+        """Bytes waiting in the tty's input queue on the driver's side (FIONREAD on our slave fd)."""
+        if self._slave_fd is None:
+            return 0
+        try:
+            return struct.unpack("i", fcntl.ioctl(self._slave_fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except OSError:
+            return 0
+
+    def _settle(self, before: int, n: int) -> None:
+        """Spin until ``n`` more bytes are readable by the driver, it started reading, or ``settle_s`` passed."""
+        if n <= 0:
+            return
+        target = min(before + n, 4000)  # the line discipline's read buffer holds about 4 KiB
+        deadline = time.perf_counter() + self.settle_s
+        last = before
+        while True:
+            seen = self._readable_by_driver()
+            if seen >= target or seen < last or time.perf_counter() > deadline:
+                return
+            last = seen
+            os.sched_yield()  # the kernel worker that moves the bytes may be queued on this very CPU
 
     def _readable(self) -> None:
         if self.master_fd is None:

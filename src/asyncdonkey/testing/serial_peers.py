@@ -529,7 +529,7 @@ class NmeaPeer(PtyPeer):
         self.decimals = decimals
         self.start_utc = start_utc or _dt.datetime(2024, 6, 1, 12, 0, 0, tzinfo=_dt.UTC)
         self.talker = talker
-        self._t_start: float | None = None
+        self.t_start: float | None = None
         self._timer: asyncio.TimerHandle | None = None
         self._corrupt: list[str] = []
         #: every line sent, without CR LF
@@ -563,8 +563,8 @@ class NmeaPeer(PtyPeer):
 
     def on_plug(self) -> None:
         now = self.now()
-        if self._t_start is None:
-            self._t_start = now
+        if self.t_start is None:
+            self.t_start = now
         self._schedule(now)
 
     def on_unplug(self) -> None:
@@ -580,8 +580,8 @@ class NmeaPeer(PtyPeer):
         self._timer = None
         if not self.plugged:
             return
-        assert self._t_start is not None
-        t = when - self._t_start
+        assert self.t_start is not None
+        t = when - self.t_start
         lat, lon = self.position(t)
         utc = self.start_utc + _dt.timedelta(seconds=t)
         hhmmss = f"{utc:%H%M%S}.{utc.microsecond // 10000:02d}"

@@ -142,7 +142,7 @@ def test_any_position_round_trips_through_rmc_and_gga(lat, lon, talker):
         assert math.isclose(fix.longitude, lon, abs_tol=1e-8)
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(st.text(max_size=120))
 def test_arbitrary_text_never_raises_and_every_line_is_accounted_for(text):
     p = NmeaParser()
@@ -150,7 +150,7 @@ def test_arbitrary_text_never_raises_and_every_line_is_accounted_for(text):
     assert (out is not None) + sum(p.counts.values()) == 1
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(st.binary(max_size=100))
 def test_arbitrary_bytes_decoded_leniently_never_raise(data):
     p = NmeaParser()
@@ -159,7 +159,7 @@ def test_arbitrary_bytes_decoded_leniently_never_raise(data):
     assert sum(p.counts.values()) + p.accepted == 2
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(st.data())
 def test_any_single_character_change_in_the_body_is_rejected(data):
     """XOR catches every single-byte error: a corrupted sentence never yields a position."""

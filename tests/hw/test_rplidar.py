@@ -150,7 +150,7 @@ def test_partial_revolution_before_the_first_start_flag_is_discarded():
     assert [len(s) for s in scans] == [90]
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(min_value=1, max_value=64), min_size=1, max_size=40))
 def test_decoding_does_not_depend_on_chunk_boundaries(cuts):
     _, data = _model_bytes(2, points=40)
@@ -168,7 +168,7 @@ def test_decoding_does_not_depend_on_chunk_boundaries(cuts):
         assert np.array_equal(a.angles, b.angles) and np.array_equal(a.distances, b.distances)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(st.lists(st.binary(max_size=64), max_size=30))
 def test_random_bytes_never_raise_in_any_state(chunks):
     scans: list = []

@@ -249,6 +249,8 @@ class I2CBus:
         ex = self._executor
         if ex is None:
             with self._lock:
+                if self._closed:
+                    raise I2CError(f"I2C bus {self.bus_number}: used after close()", bus=self.bus_number)
                 ex = self._executor
                 if ex is None:
                     ex = self._executor = concurrent.futures.ThreadPoolExecutor(

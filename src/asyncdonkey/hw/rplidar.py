@@ -346,8 +346,8 @@ class RPLidarDriver:
     connected, the scan is started again (``restarts``).
 
     Args:
-        port: device path (e.g. ``/dev/ttyUSB0`` or its ``/dev/serial/by-id`` link) or a :class:`SerialPort`
-            (its receiver must be this driver's :attr:`protocol`; pass a path unless you need to share one).
+        port: device path (e.g. ``/dev/ttyUSB0``, better its ``/dev/serial/by-id`` link); the driver makes a
+            binary-mode :class:`SerialPort` (``driver.port``) with itself as the receiver.
         response_timeout_s: how long to wait for a descriptor and its answer.
         watchdog_s: silence while scanning that restarts the scan.
         on_scan: called with each complete :class:`Scan` (on the event loop thread; keep it short).

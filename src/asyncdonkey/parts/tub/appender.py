@@ -185,7 +185,8 @@ class TubAppender:
 
     # ---------------------------------------------------------------------------------------- opening
     def _create(self, inputs: list[str], types: list[str], metadata: dict[str, Any], max_len: int) -> ManifestData:
-        if (self.base / catalog_name(0)).exists():
+        first = self.base / catalog_name(0)
+        if first.exists() and first.stat().st_size > 0:  # an empty one is left by a crash during creation
             raise TubFormatError(
                 f"{self.base}: holds {catalog_name(0)} but no {MANIFEST_NAME}; refusing to overwrite it "
                 "(restore the manifest or choose another directory)"

@@ -1,10 +1,12 @@
 """Train a pilot on the simulator in seconds (numpy only) and export it to ONNX.
 
     python examples/train.py --out models/sim_pilot.onnx
+    python examples/train.py --tub data/tub_1 --out models/sim_pilot.onnx    # start from a recorded session
 
 1. Collect: the scripted driver drives the simulated car headless (no event loop, as fast as the CPU allows);
    short steering pulses are added to what the car executes, not to the labels, so the data shows how to
-   recover from mistakes.
+   recover from mistakes. With ``--tub``, the recorded frames and user commands are the first data set
+   instead.
 2. Fit: ridge regression from small image features to the driver's angle and throttle; a DAgger-lite round
    lets the fitted pilot drive and the driver label what it sees, then refits.
 3. Check: error on held-out driving (another place on the track, another driver seed) against a constant
@@ -25,7 +27,15 @@ from pathlib import Path
 import numpy as np
 
 from asyncdonkey.parts.sim import ScriptedDriver, Simulator
-from asyncdonkey.parts.sim.training import LinearPilot, Perturbation, collect, drive, evaluate, train_pilot
+from asyncdonkey.parts.sim.training import (
+    LinearPilot,
+    Perturbation,
+    collect,
+    drive,
+    evaluate,
+    samples_from_tub,
+    train_pilot,
+)
 
 
 def features_and_exporter():
@@ -42,6 +52,7 @@ def features_and_exporter():
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("models/sim_pilot.onnx"), help="ONNX file to write")
+    ap.add_argument("--tub", type=Path, action="append", help="train first on this recorded tub (repeatable)")
     ap.add_argument("--frames", type=int, default=1500, help="frames collected with the scripted driver")
     ap.add_argument("--dagger", type=int, default=1, help="DAgger rounds (the pilot drives, the driver labels)")
     ap.add_argument("--dagger-frames", type=int, default=800, help="frames per DAgger round")
@@ -56,8 +67,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     t0 = time.perf_counter()
+    initial = None
+    if args.tub:
+        try:
+            initial = samples_from_tub(args.tub, features=features)
+        except (OSError, ValueError) as exc:
+            print(f"train.py: {exc}", file=sys.stderr)
+            return 2
+        print(f"read {len(initial)} records from {', '.join(map(str, args.tub))}")
     pilot, report = train_pilot(
-        features, frames=args.frames, dagger_rounds=args.dagger, dagger_frames=args.dagger_frames, seed=args.seed
+        features,
+        frames=args.frames,
+        dagger_rounds=args.dagger,
+        dagger_frames=args.dagger_frames,
+        seed=args.seed,
+        initial=initial,
     )
     print(f"trained on {report.samples} frames in {time.perf_counter() - t0:.1f} s (ridge alpha {report.alpha})")
 

@@ -11,6 +11,7 @@ from asyncdonkey.parts.sim.training import (
     evaluate,
     fit_ridge,
     gray_pool_features,
+    samples_from_tub,
     train_pilot,
 )
 
@@ -54,3 +55,34 @@ def test_trained_pilot_drives_a_lap_in_closed_loop(trained):
     assert result.distance > sim.track.length
     assert result.laps == 1
     assert result.max_abs_cte < 0.6 * sim.track.half_width
+
+
+def test_samples_from_a_recorded_tub_match_the_session(tmp_path):
+    from asyncdonkey.parts.tub import TubWriter
+
+    sim = Simulator()
+    driver = ScriptedDriver(sim.track, seed=3)
+    writer = TubWriter(
+        tmp_path / "tub",
+        inputs=["cam/image_array", "user/angle", "user/throttle", "sim/cte"],
+        types=["image_array", "float", "float", "float"],
+    )
+    frames, angles = [], []
+    for _ in range(60):
+        tel = sim.telemetry()
+        image = sim.render()
+        angle, throttle = driver.run(tel.x, tel.y, tel.heading)
+        writer.run(image, angle, throttle, tel.cte)
+        frames.append(image)
+        angles.append(angle)
+        sim.step(0.05, angle, throttle)
+    writer.shutdown()
+    s = samples_from_tub(tmp_path / "tub", features=FEATURES)
+    assert len(s) == 60
+    np.testing.assert_allclose(s.angle, angles)
+    assert np.isfinite(s.cte).all()
+    # JPEG changes pixels a little, the pooled features barely
+    direct = np.array([FEATURES(f) for f in frames])
+    assert np.abs(s.features - direct).max() < 0.03
+    with pytest.raises(ValueError, match="pilot/angle"):
+        samples_from_tub(tmp_path / "tub", features=FEATURES, angle_key="pilot/angle")

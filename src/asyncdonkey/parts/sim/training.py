@@ -18,6 +18,8 @@ directly, without an event loop.
 from __future__ import annotations
 
 import logging
+import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -34,6 +36,7 @@ __all__ = [
     "drive",
     "evaluate",
     "fit_ridge",
+    "samples_from_tub",
     "train_pilot",
 ]
 
@@ -146,6 +149,46 @@ def collect(
     return Samples(np.asarray(feats, dtype=np.float32), angles, throttles, ctes)
 
 
+def samples_from_tub(
+    paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    features: FeatureFn,
+    image_key: str = "cam/image_array",
+    angle_key: str = "user/angle",
+    throttle_key: str = "user/throttle",
+) -> Samples:
+    """Samples from recorded tubs (ours or Donkeycar's): ``features(image)`` with the recorded user command.
+
+    Deleted records are skipped (the reader does that). ``cte`` is taken from ``sim/cte`` when the session
+    recorded it, else NaN. Raises ``ValueError`` naming the tub when a needed key was not recorded.
+    """
+    from ..tub import Tub
+
+    if isinstance(paths, str | os.PathLike):
+        paths = [paths]
+    feats: list[np.ndarray] = []
+    angles: list[float] = []
+    throttles: list[float] = []
+    ctes: list[float] = []
+    for path in paths:
+        tub = Tub(path)
+        missing = [k for k in (image_key, angle_key, throttle_key) if k not in tub.inputs]
+        if missing:
+            raise ValueError(f"tub {os.fspath(path)!r} has no {missing} (it recorded {tub.inputs})")
+        for rec in tub:
+            angle, throttle = rec[angle_key], rec[throttle_key]
+            if angle is None or throttle is None:
+                continue
+            feats.append(features(rec[image_key]))
+            angles.append(float(angle))
+            throttles.append(float(throttle))
+            cte = rec.get("sim/cte")
+            ctes.append(math.nan if cte is None else float(cte))
+    if not feats:
+        raise ValueError(f"no usable records in {[os.fspath(p) for p in paths]}")
+    return Samples(np.asarray(feats, np.float32), np.asarray(angles), np.asarray(throttles), np.asarray(ctes))
+
+
 def fit_ridge(x: np.ndarray, y: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
     """Ridge regression ``y ≈ x @ W + b`` (intercept not penalised). Features are standardised for the
     solve, so ``alpha`` means the same whatever their scale; the returned ``W, b`` apply to raw features."""
@@ -250,16 +293,22 @@ def train_pilot(
     alphas: Sequence[float] = (0.01, 0.03, 0.1, 0.3, 1.0),
     seed: int = 0,
     hz: float = 20.0,
+    initial: Samples | None = None,
 ) -> tuple[LinearPilot, TrainReport]:
     """Collect with the scripted driver (with recovery pulses), fit, then ``dagger_rounds`` DAgger rounds.
 
-    ``alpha`` is chosen on a held-out tail of the first collection. Returns the pilot and a report.
+    ``initial`` replaces the first collection (e.g. :func:`samples_from_tub`); DAgger rounds still run in the
+    simulator, which is how a pilot trained on a careful recording learns to recover. ``alpha`` is chosen on
+    a held-out tail of the first data set. Returns the pilot and a report.
     """
     make = sim_factory or (lambda: Simulator(respawn_after_s=0.5))
     sim = make()
     driver = ScriptedDriver(sim.track, seed=seed, rate_hz=hz)
     perturb = Perturbation()
-    data = collect(sim, driver, frames, features=features, hz=hz, perturb=perturb, seed=seed + 1)
+    if initial is not None:
+        data = initial
+    else:
+        data = collect(sim, driver, frames, features=features, hz=hz, perturb=perturb, seed=seed + 1)
     split = int(len(data) * 0.8)
     train = _subset(data, slice(0, split))
     val = _subset(data, slice(split, None))

@@ -40,6 +40,7 @@ OnError = Literal["stop", "continue"]
 AGE_SUFFIX = "@age"
 #: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
 _TIME_EPS = 1e-9
+_TICK_EPS = 1e-6  # in periods: a deadline this close to `now` counts as passed
 
 
 class PartSpecError(ValueError):
@@ -525,8 +526,9 @@ class Vehicle:
                 logger.info("%s", self.profiler.table())
             k += 1
             # more than a period behind: skip the missed deadlines instead of bursting to catch up
-            if end - (t0 + k / rate_hz) > period:
-                behind_k = math.floor((end - t0) * rate_hz)
+            # (float noise of a few ulps is neither "behind" nor "not yet passed")
+            if end - (t0 + k / rate_hz) > period + _TIME_EPS:
+                behind_k = math.floor((end - t0) * rate_hz + _TICK_EPS)
                 skipped += behind_k - k
                 k = behind_k
         report.loops = loops

@@ -65,8 +65,8 @@ async def test_89ms_part_at_20hz_runs_about_11_2_hz_every_tick_overrun():
     assert report.overruns == 200
     assert report.skipped_deadlines > 0
     assert report.overrun_ms["min"] == pytest.approx(39.0, abs=1e-6)
-    # never a burst: ticks are 89 ms apart, each starting at once or on a deadline, lateness < one period
-    assert report.lateness_ms["max"] < 50.0
+    # never a burst: ticks are 89 ms apart, each starting at once or on a deadline, lateness at most one period
+    assert report.lateness_ms["max"] <= 50.0 + 1e-6
 
 
 @pytest.mark.asyncio

@@ -60,6 +60,49 @@ def test_executor_work_finishes_before_time_moves():
     assert woke == [1.0]  # and the sleeper beside it woke at exactly +1 s
 
 
+def test_a_hold_keeps_time_still_while_a_worker_thread_is_busy():
+    async def main():
+        loop = asyncio.get_running_loop()
+        jobs = []  # work handed to a thread of our own, not an executor
+        done = threading.Event()
+
+        def worker():
+            while not done.is_set():
+                if jobs:
+                    time.sleep(0.03)  # 30 ms of real work per job
+                    jobs.pop()
+                else:
+                    time.sleep(0.001)
+
+        t = threading.Thread(target=worker, daemon=True)
+        t.start()
+        release = loop.hold_time_while(lambda: bool(jobs), "worker")
+        seen = []
+        for _ in range(3):
+            jobs.append(1)
+            await asyncio.sleep(0.5)
+            seen.append((loop.time(), len(jobs)))  # the job finished before time moved 0.5 s
+        release()
+        jobs.append(1)  # no hold: time moves on at once, the job still in hand
+        await asyncio.sleep(0.5)
+        seen.append((loop.time(), len(jobs)))
+        done.set()
+        t.join()
+        return seen
+
+    assert run_virtual(main) == [(0.5, 0), (1.0, 0), (1.5, 0), (2.0, 1)]
+
+
+def test_a_hold_that_never_ends_is_reported_as_a_stall():
+    async def main():
+        loop = asyncio.get_running_loop()
+        loop.hold_time_while(lambda: True, "stuck disk writer")
+        await asyncio.sleep(1)
+
+    with pytest.raises(VirtualClockStall, match="stuck disk writer"):
+        run_virtual(main, stall_timeout_s=0.2)
+
+
 def test_deadlock_raises_a_clear_error_instead_of_hanging():
     async def main():
         await asyncio.Event().wait()

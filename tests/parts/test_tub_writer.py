@@ -470,3 +470,18 @@ async def test_records_a_drive_on_the_virtual_clock_with_simulated_timestamps(tm
     assert set(np.unique(gaps)) <= {49, 50, 51, 299, 300, 301}
     assert stamps[-1] - stamps[0] == pytest.approx((200 - 1) * 50, abs=2)
     assert [r["user/angle"] for r in recs[:5]] == [0.01, 0.02, 0.03, 0.04, 0.1]
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_on_the_virtual_clock_the_disk_takes_no_time_and_nothing_is_dropped(tmp_path):
+    """Virtual time jumps 50 ms per tick in microseconds of real time; the writer thread holds it while it
+    has records in hand, so a fast simulated drive records every frame even with a small queue."""
+    v = Vehicle()
+    v.add(Counter(), outputs=["cam/image_array", "user/angle", "user/throttle", "user/mode", "recording"])
+    w = TubWriter(tmp_path / "t", BASIC_INPUTS, BASIC_TYPES, queue_size=2, fsync=False)
+    v.add(w, inputs=BASIC_INPUTS, outputs=["tub/num_records"])
+    report = await v.run(rate_hz=20, max_loop_count=300)
+    assert report.loops == 300
+    assert (w.stats.written, w.stats.dropped) == (300, 0)
+    assert len(list(Tub(tmp_path / "t"))) == 300

@@ -17,6 +17,8 @@ How it works, and why this way:
   costs 0 virtual time, and a 1 s sleeper beside it still wakes at exactly +1 s. A pending call that makes no
   progress for ``stall_timeout_s`` of real time raises :class:`VirtualClockStall` naming it (a long-lived
   blocking loop such as a Donkeycar ``update()`` must run in its own thread, not in the executor).
+  A part with a worker thread of its own (the tub writer) registers ``hold_time_while(busy)``: while
+  ``busy()`` is true, time stands still in the same way, so its work also costs 0 virtual time.
 * **Deadlock.** Nothing ready, no timer, no executor work and no I/O within ``deadlock_grace_s`` of real time
   means the program can never finish: :class:`VirtualClockDeadlock` is raised with the waiting tasks listed,
   instead of hanging the test run.
@@ -127,6 +129,8 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._timer_seq = itertools.count()
         self._pending_executor: dict[asyncio.Future[Any], str] = {}
         self._external_pending = 0
+        self._holds: dict[int, tuple[str, Callable[[], bool]]] = {}
+        self._hold_ids = itertools.count()
         self.deadlock_grace_s = deadlock_grace_s
         self.stall_timeout_s = stall_timeout_s
         #: how many times virtual time jumped forward (a measure of how many "sleeps" the run had)
@@ -173,12 +177,28 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         """Names of the functions whose executor calls are still running (virtual time waits for them)."""
         return list(self._pending_executor.values())
 
+    def hold_time_while(self, busy: Callable[[], bool], name: str) -> Callable[[], None]:
+        """Keep virtual time still while ``busy()`` returns true; returns a function that removes the hold.
+
+        For a part whose own worker thread does real work on the loop's behalf (the tub writer's disk
+        thread): like executor work, that work then takes no virtual time, so a simulated drive recorded on
+        the virtual clock loses no records to a disk that is "infinitely slow" in virtual time. ``busy`` is
+        called from the loop thread before each time jump and while waiting, so it must be cheap and
+        thread-safe (reading counters is). While held, the loop polls ``busy`` every millisecond of real time.
+        """
+        key = next(self._hold_ids)
+        self._holds[key] = (name, busy)
+        return lambda: self._holds.pop(key, None) and None
+
+    def _held_by(self) -> list[str]:
+        return [name for name, busy in list(self._holds.values()) if busy()]
+
     # -- the jump ------------------------------------------------------------------------------------------
     def _select(self, real_select: Callable[[float | None], list[Any]], timeout: float | None) -> list[Any]:
         events_ = real_select(0)
         if events_ or timeout == 0:
             return events_
-        if self._pending_executor or self._external_pending:
+        if self._pending_executor or self._external_pending or (self._holds and self._held_by()):
             return self._wait_for_real_work(real_select)
         scheduled = self._scheduled
         while scheduled and scheduled[0]._cancelled:
@@ -199,11 +219,15 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     def _wait_for_real_work(self, real_select: Callable[[float | None], list[Any]]) -> list[Any]:
         started = time.monotonic()
         while True:
-            events_ = real_select(0.25)
-            if events_ or not (self._pending_executor or self._external_pending):
+            held = self._held_by() if self._holds else []
+            # executor futures wake the selector when done; holds are polled
+            events_ = real_select(0.001 if held else 0.25)
+            if events_:
+                return events_
+            if not (self._pending_executor or self._external_pending or (self._holds and self._held_by())):
                 return events_
             if time.monotonic() - started > self.stall_timeout_s:
-                calls = ", ".join(self.pending_executor_calls) or "default executor shutdown"
+                calls = ", ".join(self.pending_executor_calls + self._held_by()) or "default executor shutdown"
                 raise VirtualClockStall(
                     f"virtual time is frozen: executor work ({calls}) has not finished after "
                     f"{self.stall_timeout_s:.0f} s of real time. A blocking loop that never returns (for "

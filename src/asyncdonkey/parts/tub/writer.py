@@ -200,6 +200,7 @@ class TubWriter:
         self._dropped_logged = 0
         # thread coordination
         self._wake = threading.Event()
+        self._release_time: Callable[[], None] = lambda: None  # undoes the virtual clock's hold, if any
         self._closing = False
         self._abandon = False
         self._closed = False
@@ -237,10 +238,25 @@ class TubWriter:
         if clock is not None and clock.is_virtual:
             vnow = clock.now
             wall0, v0 = time.time(), vnow()
-            self._now = lambda: wall0 + (vnow() - v0)
+            wake = self._wake
+
+            def virtual_now() -> float:
+                # On virtual time the disk's work must take no time (like executor work): wake the thread
+                # for each record instead of letting it poll, and hold time while it has records in hand.
+                wake.set()
+                return wall0 + (vnow() - v0)
+
+            self._now = virtual_now
+            hold = getattr(asyncio.get_running_loop(), "hold_time_while", None)
+            if hold is not None:
+                self._release_time = hold(self._has_unwritten, self._label)
         else:
             self._now = time.time
         return self._now()
+
+    def _has_unwritten(self) -> bool:
+        """Records or commands handed over and not yet written (read from the loop thread)."""
+        return bool(self._queue) or self._accepted > self._written + self._failed
 
     # ---------------------------------------------------------------------------------- commands
     @property
@@ -312,7 +328,9 @@ class TubWriter:
                     poll = _POLL_BUSY_S if now - last_record < _BUSY_WINDOW_S else _POLL_IDLE_S
                     if app.unsynced:
                         poll = min(poll, max(0.0, sync_due - now))
-                    wake.wait(poll)  # set only by shutdown(): the tick never signals (see below)
+                    # set by shutdown(), and per record on the virtual clock only: the tick never signals
+                    if wake.wait(poll) and not self._closing:
+                        wake.clear()
                     continue
                 if self._abandon:  # shutdown() gave up and counted what is queued, this one included
                     q.appendleft((t_wall, t_mono, payload))
@@ -405,6 +423,7 @@ class TubWriter:
             return
         self._closed = True
         self._queue_size = 0  # run() now refuses (and raises) instead of queueing
+        self._release_time()
         atexit.unregister(self._atexit)
         self._closing = True
         self._wake.set()

@@ -1,22 +1,282 @@
-"""Minimal car: a sine-wave 'pilot' steering a printed 'servo'. Replaced by the simulated car."""
+"""The simulated Donkey car: camera -> controller -> pilot -> drive mode -> actuators -> recording, at 20 Hz.
 
-import math
+    make run                                                # ~20 s of laps on the shipped pilot
+    make run ARGS="-- --seconds 120"                        # longer (0: until Ctrl-C)
+    make run ARGS="-- --pilot user --record data/tub"       # the scripted "user" drives and records
+    make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model
+    asyncdonkey run examples/car.py --hz 50 -- --laps 3     # any rate; stop after 3 laps
 
-from asyncdonkey import Vehicle
+The parts are the ones a real car uses, in Donkeycar's order and with Donkeycar's channel names; only the
+camera and the actuators are the simulator's (see ``examples/car_pi.py`` for the same graph on hardware):
+
+========================= =============================================== =====================================
+part                      inputs                                          outputs
+========================= =============================================== =====================================
+SimCamera                                                                 cam/image_array
+SimTelemetry                                                              sim/x, sim/y, sim/heading, ... sim/cte
+SimController             sim/x, sim/y, sim/heading                       user/angle, user/throttle, user/mode,
+                                                                          recording
+PilotCondition            user/mode                                       run_pilot
+OnnxPilot (if run_pilot)  cam/image_array                                 pilot/angle, pilot/throttle
+DriveMode                 user/mode, user/*, pilot/*                      angle, throttle
+SimCar                    angle, throttle
+TubWriter (if recording)  cam/image_array, user/*, pilot/*, sim/cte ...   tub/num_records
+Status                    sim/laps, sim/cte, sim/off_track
+========================= =============================================== =====================================
+
+The simulated controller is a scripted driver (pure pursuit with a human-like wobble) standing in for a person
+with a joystick. It keeps driving "in its head" while the pilot has the car, so recordings made in pilot mode
+carry the driver's command for every frame the pilot saw: the labels a DAgger round trains on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.parts.control import AutoRecordOnThrottle, DriveMode, PilotCondition, normalise_mode
+from asyncdonkey.parts.sim import TELEMETRY_OUTPUTS, ScriptedDriver, SimCar, Simulator
 
 DRIVE_LOOP_HZ = 20
+DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "sim_pilot.onnx"
+#: What a recording holds: Donkeycar's channels plus the simulator's ground truth for analysis.
+RECORD_INPUTS = (
+    ("cam/image_array", "image_array"),
+    ("user/angle", "float"),
+    ("user/throttle", "float"),
+    ("user/mode", "str"),
+    ("pilot/angle", "float"),
+    ("pilot/throttle", "float"),
+    ("sim/cte", "float"),
+    ("sim/laps", "int"),
+)
 
 
-class Wave:
-    def __init__(self):
-        self.t = 0
+class SimController:
+    """The simulator's stand-in for a person at the controller: Donkeycar's four controller outputs.
 
-    def run(self):
-        self.t += 1
-        return math.sin(self.t / 20), 0.3
+    ``user/angle, user/throttle`` come from a :class:`ScriptedDriver`; ``user/mode`` is fixed for the drive;
+    ``recording`` follows :class:`AutoRecordOnThrottle` in ``user`` mode and is on for every frame in the
+    pilot modes (when recording was asked for at all).
+    """
+
+    def __init__(self, driver: ScriptedDriver, mode: str, record: bool) -> None:
+        self.driver = driver
+        self.mode = normalise_mode(mode, "SimController")
+        self.record = record
+        self.auto_record = AutoRecordOnThrottle(dead_zone=0.01)
+
+    def run(self, x: Any, y: Any, heading: Any) -> tuple[float, float, str, bool]:
+        angle, throttle = self.driver.run(x, y, heading)
+        if not self.record:
+            recording = False
+        elif self.mode == "user":
+            recording = self.auto_record.run(self.mode, throttle)
+        else:
+            recording = True
+        return angle, throttle, self.mode, recording
 
 
-def build():
+class Status:
+    """A live one-line status (laps, achieved Hz, tick lateness p99, cross-track error) and the stop rule.
+
+    ``run`` takes the tick's telemetry and asks the vehicle to stop after ``seconds`` of runtime clock or
+    ``laps`` laps. ``update`` is a background task that redraws the line every ``every`` seconds: in place
+    on a terminal, as separate lines (every few seconds) in a log.
+    """
+
+    def __init__(
+        self,
+        vehicle: Vehicle,
+        car: SimCar,
+        *,
+        seconds: float = 20.0,
+        laps: int = 0,
+        stream: TextIO | None = sys.stderr,
+        every: float = 0.5,
+    ) -> None:
+        self.vehicle = vehicle
+        self.car = car
+        self.seconds = seconds
+        self.laps_target = laps
+        self.stream = stream
+        self.tty = bool(stream is not None and getattr(stream, "isatty", lambda: False)())
+        self.every = every if self.tty else max(every, 5.0)
+        self.laps = 0
+        self.cte = 0.0
+        self.abs_cte_sum = 0.0
+        self.abs_cte_max = 0.0
+        self.off_track_ticks = 0
+        self.ticks = 0
+        self._t0: float | None = None
+        self._t_last = 0.0
+        self._line_open = False
+
+    def run(self, laps: Any, cte: Any, off_track: Any) -> None:
+        now = get_clock().now()
+        if self._t0 is None:
+            self._t0 = now
+        self._t_last = now
+        self.ticks += 1
+        self.laps = int(laps or 0)
+        self.cte = float(cte or 0.0)
+        self.abs_cte_sum += abs(self.cte)
+        self.abs_cte_max = max(self.abs_cte_max, abs(self.cte))
+        self.off_track_ticks += bool(off_track)
+        if (self.seconds > 0 and now - self._t0 >= self.seconds) or (0 < self.laps_target <= self.laps):
+            self.vehicle.stop()
+
+    def line(self, hz: float) -> str:
+        late = self.vehicle.profiler.lateness.recent(drop_last=False)[-200:]
+        p99 = float(np.percentile(late, 99)) * 1e3 if len(late) else 0.0
+        mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
+        lap_share = (self.car.sim.progress / self.car.sim.track.length) % 1.0
+        return (
+            f"laps {self.laps:3d} (+{lap_share:4.0%}) | {hz:5.1f} Hz | lateness p99 {p99:6.2f} ms | cte {self.cte:+.2f} m "
+            f"(mean |cte| {mean_cte:.2f}) | off track {self.off_track_ticks} ticks | "
+            f"respawns {self.car.sim.respawns}"
+        )
+
+    async def update(self) -> None:
+        clock = get_clock()
+        last_t, last_n = clock.now(), self.ticks
+        k = 1
+        t0 = last_t
+        while True:
+            await clock.sleep_until(t0 + k * self.every)
+            k += 1
+            now, n = clock.now(), self.ticks
+            hz = (n - last_n) / (now - last_t) if now > last_t else 0.0
+            last_t, last_n = now, n
+            self._write(self.line(hz))
+
+    def _write(self, text: str) -> None:
+        if self.stream is None:
+            return
+        if self.tty:
+            self.stream.write("\r\x1b[2K" + text)
+            self._line_open = True
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def summary(self) -> str:
+        """The drive in one line, printed when the car stops."""
+        seconds = (self._t_last - self._t0) if self._t0 is not None else 0.0
+        mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
+        return (
+            f"drove {self.laps} laps ({self.car.sim.progress:.0f} m) in {seconds:.1f} s: "
+            f"mean |cte| {mean_cte:.3f} m, max {self.abs_cte_max:.3f} m, off track {self.off_track_ticks} ticks, "
+            f"respawns {self.car.sim.respawns}"
+        )
+
+    def shutdown(self) -> None:
+        if self.stream is None:
+            return
+        if self._line_open:
+            self.stream.write("\n")
+            self._line_open = False
+        self.stream.write(self.summary() + "\n")
+        self.stream.flush()
+
+
+def make_car(
+    *,
+    pilot: str | Path = DEFAULT_MODEL,
+    mode: str | None = None,
+    record: str | Path | None = None,
+    seconds: float = 20.0,
+    laps: int = 0,
+    ai_throttle_mult: float = 1.0,
+    seed: int = 0,
+    status: TextIO | None = sys.stderr,
+    rate_hz: float = DRIVE_LOOP_HZ,
+) -> tuple[Vehicle, SimCar]:
+    """Assemble the simulated car. ``pilot`` is an ONNX model path or ``"user"`` (no pilot).
+
+    Returns the vehicle and the simulated car (for its simulator's state after the drive).
+    """
+    user_only = str(pilot) == "user"
+    drive_mode = normalise_mode(mode or ("user" if user_only else "local"), "car.py --mode")
+    if user_only and drive_mode != "user":
+        raise ValueError(f"--mode {drive_mode} needs a pilot; --pilot user drives in user mode only")
+
     v = Vehicle()
-    v.add(Wave(), outputs=["angle", "throttle"])
-    return v
+    car = SimCar(Simulator(respawn_after_s=1.0))
+    car.sim.render()  # builds the track texture and camera tables now, not in the first tick
+    v.add(car.camera, outputs=["cam/image_array"])
+    v.add(car.telemetry, outputs=list(TELEMETRY_OUTPUTS))
+    driver = ScriptedDriver(car.sim.track, seed=seed, rate_hz=rate_hz)
+    v.add(
+        SimController(driver, drive_mode, record is not None),
+        inputs=["sim/x", "sim/y", "sim/heading"],
+        outputs=["user/angle", "user/throttle", "user/mode", "recording"],
+    )
+    if not user_only:
+        from asyncdonkey.parts.pilot import OnnxPilot  # onnxruntime loads only when a pilot drives
+
+        v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
+        v.add(
+            OnnxPilot(pilot),
+            inputs=["cam/image_array"],
+            outputs=["pilot/angle", "pilot/throttle"],
+            run_condition="run_pilot",
+        )
+    v.add(
+        DriveMode(ai_throttle_mult=ai_throttle_mult),
+        inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
+        outputs=["angle", "throttle"],
+    )
+    v.add(car, inputs=["angle", "throttle"])
+    if record is not None:
+        from asyncdonkey.parts.tub import TubWriter
+
+        names, types = zip(*RECORD_INPUTS, strict=True)
+        writer = TubWriter(record, inputs=names, types=types, metadata=[f"pilot:{pilot}", f"mode:{drive_mode}"])
+        v.add(writer, inputs=list(names), outputs=["tub/num_records"], run_condition="recording")
+    v.add(
+        Status(v, car, seconds=seconds, laps=laps, stream=status),
+        inputs=["sim/laps", "sim/cte", "sim/off_track"],
+    )
+    return v, car
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="asyncdonkey run examples/car.py --", description="the simulated car")
+    ap.add_argument(
+        "--pilot",
+        default=str(DEFAULT_MODEL),
+        help="ONNX model to drive on, or 'user' for the scripted driver alone (default: the shipped sim pilot)",
+    )
+    ap.add_argument("--mode", choices=["user", "local_angle", "local"], help="drive mode (default: local with a pilot)")
+    ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
+    ap.add_argument("--seconds", type=float, default=20.0, help="stop after S seconds (0: until Ctrl-C)")
+    ap.add_argument("--laps", type=int, default=0, help="stop after N laps (0: no limit)")
+    ap.add_argument("--ai-throttle-mult", type=float, default=1.0, help="scale the pilot's throttle")
+    ap.add_argument("--seed", type=int, default=0, help="the scripted driver's seed")
+    ap.add_argument("--quiet", action="store_true", help="no live status line")
+    return ap.parse_args(argv)
+
+
+def build(argv: list[str]) -> Vehicle:
+    """The ``asyncdonkey run`` entry: options after ``--`` (see ``--help``)."""
+    args = parse_args(argv)
+    if args.pilot != "user" and not Path(args.pilot).is_file():
+        hint = " (make it with: python examples/train.py)" if Path(args.pilot) == DEFAULT_MODEL else ""
+        raise FileNotFoundError(f"pilot model {args.pilot} not found{hint}; or drive with --pilot user")
+    vehicle, _ = make_car(
+        pilot=args.pilot,
+        mode=args.mode,
+        record=args.record,
+        seconds=args.seconds,
+        laps=args.laps,
+        ai_throttle_mult=args.ai_throttle_mult,
+        seed=args.seed,
+        status=None if args.quiet else sys.stderr,
+    )
+    return vehicle

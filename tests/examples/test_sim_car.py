@@ -1,0 +1,68 @@
+"""examples/car.py, the README's `make run`: the simulated car drives laps on the virtual clock."""
+
+import importlib.util
+import io
+import sys
+from pathlib import Path
+
+import pytest
+
+from asyncdonkey.parts.tub import Tub
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+car_py = load_example("car")
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_scripted_user_drives_two_laps_and_records_them(tmp_path):
+    status = io.StringIO()
+    v, car = car_py.make_car(pilot="user", record=tmp_path / "tub", seconds=0, laps=2, status=status)
+    report = await v.run(rate_hz=20, max_loop_count=20 * 200)
+    assert report.stop_reason == "stop()"  # the lap target stopped it, not the loop limit
+    assert car.sim.laps.laps == 2
+    assert car.sim.respawns == 0
+    assert report.overruns == 0 and report.skipped_deadlines == 0
+    # every tick with the throttle open was recorded, with the driver's commands and the frames
+    tub = Tub(tmp_path / "tub")
+    records = list(tub)
+    assert len(records) == report.loops
+    first = records[0]
+    assert first["user/mode"] == "user"
+    assert first["cam/image_array"].shape == (120, 160, 3)
+    assert "pilot/angle" not in first  # no pilot: nothing recorded under its name
+    assert all(abs(r["sim/cte"]) < 0.5 for r in records)
+    assert records[-1]["sim/laps"] in (1, 2)
+    # the status line and the summary were written
+    text = status.getvalue()
+    assert "drove 2 laps" in text
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_stops_after_the_given_seconds_of_runtime_clock():
+    v, car = car_py.make_car(pilot="user", seconds=3.0, status=None)
+    report = await v.run(rate_hz=20, max_loop_count=10_000)
+    assert report.stop_reason == "stop()"
+    assert report.loops == 61  # ticks at 0, 0.05, ... 3.0 s; the one at 3.0 s asks to stop
+    assert car.sim.progress > 2.0  # the car moved
+
+
+def test_car_options_and_their_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"pilot model .*nope.onnx not found"):
+        car_py.build(["--pilot", str(tmp_path / "nope.onnx")])
+    with pytest.raises(ValueError, match="needs a pilot"):
+        car_py.make_car(pilot="user", mode="local", status=None)
+    v = car_py.build(["--pilot", "user", "--quiet"])
+    names = [e.name for e in v.parts]
+    assert names == ["SimCamera", "SimTelemetry", "SimController", "DriveMode", "SimCar", "Status"]

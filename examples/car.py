@@ -1,6 +1,6 @@
 """The simulated Donkey car: camera -> controller -> pilot -> drive mode -> actuators -> recording, at 20 Hz.
 
-    make run                                                # ~20 s of laps on the shipped pilot
+    make run                                                # 25 s (a lap and a bit) on the shipped pilot
     make run ARGS="-- --seconds 120"                        # longer (0: until Ctrl-C)
     make run ARGS="-- --pilot user --record data/tub"       # the scripted "user" drives and records
     make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model
@@ -137,8 +137,8 @@ class Status:
         mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
         lap_share = (self.car.sim.progress / self.car.sim.track.length) % 1.0
         return (
-            f"laps {self.laps:3d} (+{lap_share:4.0%}) | {hz:5.1f} Hz | lateness p99 {p99:6.2f} ms | cte {self.cte:+.2f} m "
-            f"(mean |cte| {mean_cte:.2f}) | off track {self.off_track_ticks} ticks | "
+            f"laps {self.laps:3d} (+{lap_share:4.0%}) | {hz:5.1f} Hz | lateness p99 {p99:6.2f} ms | "
+            f"cte {self.cte:+.2f} m (mean |cte| {mean_cte:.2f}) | off track {self.off_track_ticks} ticks | "
             f"respawns {self.car.sim.respawns}"
         )
 
@@ -190,9 +190,9 @@ def make_car(
     pilot: str | Path = DEFAULT_MODEL,
     mode: str | None = None,
     record: str | Path | None = None,
-    seconds: float = 20.0,
+    seconds: float = 25.0,
     laps: int = 0,
-    ai_throttle_mult: float = 1.0,
+    ai_throttle_mult: float = 1.3,
     seed: int = 0,
     status: TextIO | None = sys.stderr,
     rate_hz: float = DRIVE_LOOP_HZ,
@@ -255,9 +255,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     ap.add_argument("--mode", choices=["user", "local_angle", "local"], help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
-    ap.add_argument("--seconds", type=float, default=20.0, help="stop after S seconds (0: until Ctrl-C)")
+    ap.add_argument("--seconds", type=float, default=25.0, help="stop after S seconds (0: until Ctrl-C)")
     ap.add_argument("--laps", type=int, default=0, help="stop after N laps (0: no limit)")
-    ap.add_argument("--ai-throttle-mult", type=float, default=1.0, help="scale the pilot's throttle")
+    ap.add_argument(
+        "--ai-throttle-mult",
+        type=float,
+        default=1.3,
+        help="scale the pilot's throttle (default 1.3: the shipped pilot learnt the scripted driver's cautious pace)",
+    )
     ap.add_argument("--seed", type=int, default=0, help="the scripted driver's seed")
     ap.add_argument("--quiet", action="store_true", help="no live status line")
     return ap.parse_args(argv)

@@ -50,6 +50,20 @@ async def test_scripted_user_drives_two_laps_and_records_them(tmp_path):
 
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
+async def test_the_shipped_pilot_drives_three_clean_laps():
+    v, car = car_py.make_car(seconds=0, laps=3, status=None)  # the defaults of `make run`: shipped model
+    status = next(e.part for e in v.parts if e.name == "Status")
+    report = await v.run(rate_hz=20, max_loop_count=20 * 300)
+    assert report.stop_reason == "stop()"
+    assert car.sim.laps.laps == 3
+    assert car.sim.respawns == 0 and status.off_track_ticks == 0
+    assert status.abs_cte_max < 0.25  # the road is 1 m wide: never near its edge
+    assert v.mem["user/mode"] == "local" and v.mem["pilot/angle"] is not None
+    assert report.parts["OnnxPilot"]["count"] > 0  # inference ran, and shows in the profiler
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
 async def test_stops_after_the_given_seconds_of_runtime_clock():
     v, car = car_py.make_car(pilot="user", seconds=3.0, status=None)
     report = await v.run(rate_hz=20, max_loop_count=10_000)

@@ -380,7 +380,7 @@ async def areplay(
     missing = [k for k in (image_key, *user_keys) if k not in tub.inputs]
     if missing:
         raise ReplayError(f"{tub.base_path}: the tub records no {', '.join(missing)} (it records {tub.inputs})")
-    predict, pilot_name, owned = _resolve_pilot(pilot)
+    predict, pilot_name, owned = _resolve_pilot(pilot, lambda: _first_frame_shape(tub, image_key))
     real_start = time.perf_counter()
     try:
         vehicle = Vehicle()
@@ -417,8 +417,14 @@ async def areplay(
     return report
 
 
-def _resolve_pilot(pilot: Any) -> tuple[Callable[[np.ndarray], Any], str, Any]:
-    """``(predict, name, object to shut down or None)`` for a model path, a predictor or a callable."""
+def _resolve_pilot(
+    pilot: Any, frame_shape: Callable[[], tuple[int, ...] | None]
+) -> tuple[Callable[[np.ndarray], Any], str, Any]:
+    """``(predict, name, object to shut down or None)`` for a model path, a predictor or a callable.
+
+    A model is loaded for the tub's frame size (``frame_shape()``, the first readable image), so a model that
+    does not fit the recorded frames is refused at load with both shapes in the message, before any replay.
+    """
     if isinstance(pilot, str | os.PathLike):
         path = Path(pilot)
         if not path.is_file():
@@ -427,10 +433,12 @@ def _resolve_pilot(pilot: Any) -> tuple[Callable[[np.ndarray], Any], str, Any]:
             from .parts.pilot import OnnxPilot
         except ImportError as exc:
             raise ReplayError(f"cannot load ONNX models: {exc}") from exc
+        shape = frame_shape()
+        kwargs: dict[str, Any] = {} if shape is None or len(shape) != 3 else {"image_shape": shape}
         try:
-            onnx_pilot = OnnxPilot(path)
+            onnx_pilot = OnnxPilot(path, offload=False, **kwargs)
         except (OSError, ValueError) as exc:
-            raise ReplayError(f"model {path}: {exc}") from exc
+            raise ReplayError(str(exc)) from exc
         return onnx_pilot.predict, str(path), onnx_pilot
     predict = getattr(pilot, "predict", None)
     if callable(predict):
@@ -438,6 +446,20 @@ def _resolve_pilot(pilot: Any) -> tuple[Callable[[np.ndarray], Any], str, Any]:
     if callable(pilot):
         return pilot, getattr(pilot, "__name__", type(pilot).__name__), None
     raise TypeError(f"replay: pilot must be a model path, an object with predict(image) or a callable; got {pilot!r}")
+
+
+def _first_frame_shape(tub: Tub, image_key: str) -> tuple[int, ...] | None:
+    """The shape of the first readable ``image_key`` image in ``tub`` (``None`` if there is none)."""
+    for rec in tub.records():
+        if rec.raw.get(image_key) is None:
+            continue
+        try:
+            image = rec[image_key]
+        except TubError:
+            continue
+        if isinstance(image, np.ndarray):
+            return tuple(int(d) for d in image.shape)
+    return None
 
 
 def _shutdown_quietly(obj: Any) -> None:

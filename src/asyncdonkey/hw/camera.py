@@ -6,13 +6,13 @@ steers on images hundreds of milliseconds old. :class:`CameraReader` grabs in it
 source delivers and keeps only the newest converted frame in a :class:`~asyncdonkey.latest.Latest` cell; a
 consumer never sees a frame older than the one the thread last grabbed.
 
-The runtime's image contract is Donkeycar's: RGB, ``uint8``, shape ``(height, width, 3)`` (160×120 by
+The runtime's image contract is Donkeycar's: RGB, ``uint8``, shape ``(height, width, 3)`` (160x120 by
 default). OpenCV decodes to BGR, so every frame is converted once, in the reader thread, off the loop.
 
 Sources:
 
 * **A device index** (``0`` → ``/dev/video0``) or a device path: paced by the camera itself (``read()`` blocks
-  until the next frame).
+  until the next frame). OpenCV's image-sequence patterns (``frame_%03d.jpg``) are read like a device.
 * **A file or URL** (an ``.avi``/``.mp4``, an RTSP/HTTP stream): a file is decoded as fast as the CPU allows,
   so the reader paces it at ``fps`` (default: the file's own frame rate) to behave like a camera. At the end of
   a file the reader either starts again (``loop=True``) or ends (``ended`` becomes true, ``on_end`` is called
@@ -91,7 +91,7 @@ class CameraReader:
             ``0`` reads a file as fast as it decodes. Ignored for devices and streams.
         loop: at the end of a file, start again (True) or end (False).
         on_end: called once, from the reader thread, when a non-looping file ends.
-        capture_size: ask a device for this ``(width, height)`` (many webcams default to 640×480).
+        capture_size: ask a device for this ``(width, height)`` (many webcams default to 640x480).
         reopen_after: consecutive failed reads of a live source before it is released and opened again.
         clock: the time source for frame timestamps (seconds).
         backend: an OpenCV ``CAP_*`` API preference (default: OpenCV chooses).
@@ -158,7 +158,8 @@ class CameraReader:
 
     # ------------------------------------------------------------------------------------------ opening
     def _open(self) -> Any:
-        if isinstance(self.source, str) and "://" not in self.source and not os.path.exists(self.source):
+        pattern = isinstance(self.source, str) and ("://" in self.source or "%" in self.source)
+        if isinstance(self.source, str) and not pattern and not os.path.exists(self.source):
             raise CameraError(f"camera source {self.name}: no such file or device")
         cap = cv2.VideoCapture(self.source) if self.backend is None else cv2.VideoCapture(self.source, self.backend)
         if not cap.isOpened():
@@ -301,7 +302,13 @@ class CameraReader:
 
     @property
     def running(self) -> bool:
+        """True while a reader loop (this reader's thread or :meth:`run_forever` elsewhere) is grabbing."""
         return self._running
+
+    @property
+    def started(self) -> bool:
+        """True once :meth:`start` has started the reader thread."""
+        return self._thread is not None
 
     def stop(self, timeout: float = 2.0) -> None:
         """Stop the thread and release the capture."""

@@ -181,7 +181,10 @@ class JoystickReader:
             self.last_error = f"{exc.strerror or exc}"
             if self._log.allow("open", get_clock(loop).now()):
                 logger.warning(
-                    "joystick %s: cannot open (%s); retrying every %.1f s", self.device, self.last_error, self.reconnect_s
+                    "joystick %s: cannot open (%s); retrying every %.1f s",
+                    self.device,
+                    self.last_error,
+                    self.reconnect_s,
                 )
             self._schedule_retry()
             return False
@@ -245,7 +248,9 @@ class JoystickReader:
         self.disconnects += 1
         self.last_error = reason
         self.state.reset()
-        logger.warning("joystick %s: %s; outputs neutral, reconnecting every %.1f s", self.device, reason, self.reconnect_s)
+        logger.warning(
+            "joystick %s: %s; outputs neutral, reconnecting every %.1f s", self.device, reason, self.reconnect_s
+        )
         if self.on_disconnect is not None:
             self.on_disconnect()
         self._schedule_retry()

@@ -1,6 +1,6 @@
 """Camera parts with Donkeycar's output ``cam/image_array``: a live OpenCV camera and a folder replayer.
 
-Both give RGB ``uint8`` frames of shape ``(IMAGE_H, IMAGE_W, 3)`` (120×160×3 by default) and never hand
+Both give RGB ``uint8`` frames of shape ``(IMAGE_H, IMAGE_W, 3)`` (120x160x3 by default) and never hand
 ``None`` to the parts after them.
 
 **Warm-up.** Donkeycar cameras return ``None`` until the first frame arrives, and a pilot or a tub writer then
@@ -48,7 +48,7 @@ class CvCamera:
     """An OpenCV camera (device index, device path, video file or URL) as a drive-loop part.
 
     Args:
-        image_w, image_h: output size (Donkeycar's ``IMAGE_W``, ``IMAGE_H``; default 160×120).
+        image_w, image_h: output size (Donkeycar's ``IMAGE_W``, ``IMAGE_H``; default 160x120).
         image_d: depth; only 3 (RGB) is supported, as in Donkeycar's ``CvCam``.
         iCam: the source: a device index (Donkeycar's ``CAMERA_INDEX``), a ``/dev/video*`` path, a video file
             or a stream URL.
@@ -68,7 +68,7 @@ class CvCamera:
         image_w: int = DEFAULT_IMAGE_W,
         image_h: int = DEFAULT_IMAGE_H,
         image_d: int = 3,
-        iCam: int | str = 0,  # noqa: N803 - Donkeycar's argument name
+        iCam: int | str = 0,
         *,
         framerate: float | None = None,
         loop: bool = True,
@@ -141,7 +141,7 @@ class CvCamera:
 
     def run(self) -> Any:
         """The newest frame (never ``None``); starts the reader thread on the first call."""
-        if not self.reader.running and self.reader._thread is None:
+        if not self.reader.started and not self.reader.running:
             self._adopt_loop_clock()
             self.reader.start()
         return self.run_threaded()

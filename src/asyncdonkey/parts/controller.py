@@ -11,9 +11,9 @@ layout of a Logitech F710 in X mode and most PS4/PS5 pads under ``hid-sony`` for
 ==========================  ======================================  =========================================
 what                        default                                 how
 ==========================  ======================================  =========================================
-steering                    axis 0 (left stick, horizontal)         value/32767, deadzone, × ``steering_scale``
+steering                    axis 0 (left stick, horizontal)         value/32767, deadzone, x ``steering_scale``
 throttle                    axis 4 (right stick, vertical),         inverted (stick up is negative on Linux),
-                            inverted                                deadzone, × ``throttle_scale`` × max
+                            inverted                                deadzone, x ``throttle_scale`` x max
 mode cycle                  button 0 (A / cross)                    user → local_angle → local → user
 recording toggle            button 1 (B / circle)                   on ↔ off
 emergency stop              button 3 (Y / triangle)                 throttle 0 and mode ``user`` at once

@@ -3,7 +3,7 @@
 The camera code is tested through OpenCV's real capture path (``cv2.VideoCapture`` decoding an MJPG file), not
 through a fake ``read()``. To tell *which* frame a consumer was served, each frame carries its number as a row
 of black/white bands (one bit per band, most significant first) across the top half; the bands are wide and
-flat so JPEG compression and a 2× downscale leave them readable. The bottom half is a solid colour (``color``,
+flat so JPEG compression and a 2x downscale leave them readable. The bottom half is a solid colour (``color``,
 BGR) or, by default, a bar that moves with the frame number so the picture visibly changes.
 
 :func:`frame_number` reads the number back from an RGB frame of any size.

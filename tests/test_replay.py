@@ -296,6 +296,9 @@ def test_cli_errors_are_one_line_with_exit_2(recorded, model, tmp_path):
     assert_one_line_error(run_cli(recorded, "--pilot", tmp_path / "nope.onnx"), "nope.onnx", "not found")
     small = write_model(tmp_path / "small.onnx", rows=60, cols=80)
     assert_one_line_error(run_cli(recorded, "--pilot", small), "small.onnx", "[1, 60, 80, 3]", "120x160x3")
+    assert_one_line_error(
+        run_cli(recorded, "--pilot", model, "--csv", tmp_path / "no_dir" / "rows.csv"), "rows.csv", "directory"
+    )
     (tmp_path / "junk.onnx").write_bytes(b"not a model")
     assert_one_line_error(run_cli(recorded, "--pilot", tmp_path / "junk.onnx"), "junk.onnx", "cannot load")
 

@@ -376,6 +376,8 @@ async def areplay(
     user_keys = tuple(user_keys)
     if len(user_keys) != 2:
         raise ValueError(f"replay: user_keys must name the angle and throttle channels, got {list(user_keys)}")
+    if csv_path is not None and not Path(csv_path).absolute().parent.is_dir():
+        raise ReplayError(f"cannot write CSV {os.fspath(csv_path)!r}: its directory does not exist")
     tub = Tub(tub_path)
     missing = [k for k in (image_key, *user_keys) if k not in tub.inputs]
     if missing:

@@ -6,6 +6,8 @@ about a tenth of that). For each, per inference, median and p99 latency of:
 
 * **session.run**: the floor, ``session.run`` on a frame already scaled to float32 (the pilot's own session,
   so thread settings are identical);
+* **frame / 255 + session.run**: what any pilot taking uint8 frames must do at least (numpy's scaling into a
+  new array, then ``session.run``);
 * **predict()**: :meth:`OnnxPilot.predict` on the uint8 frame: checks, ``/ 255``, ``session.run``, unpacking,
   clipping; the overhead is ``predict / session.run - 1`` on medians (target <= 5 % for the Donkeycar-shaped
   model);
@@ -15,7 +17,7 @@ about a tenth of that). For each, per inference, median and p99 latency of:
 * **run() at 20 Hz**: the same at Donkeycar's drive rate, where every inference starts after 50 ms idle
   (caches and onnxruntime's threads cold, spinning off): what a car sees.
 
-Blocks of session.run and predict() alternate, so drifts of the machine hit both alike.
+session.run, the scaled run and predict() alternate call by call, so drifts of the machine hit all alike.
 
     python benchmarks/pilot.py            # about 30 s
     python benchmarks/pilot.py --quick    # about 6 s
@@ -56,25 +58,30 @@ def _ms(samples: list[float] | np.ndarray) -> dict[str, float]:
     return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)), "n": len(ms)}
 
 
-def bare_and_predict(pilot: OnnxPilot, image: np.ndarray, rounds: int, per_round: int) -> tuple[dict, dict]:
+def bare_and_predict(pilot: OnnxPilot, image: np.ndarray, calls: int) -> tuple[dict, dict, dict]:
+    """Per call, in turn: bare ``session.run``, ``session.run`` on a freshly scaled frame, ``predict()``.
+
+    Interleaving call by call (not in blocks) keeps a busy neighbour on a shared machine from landing on one
+    path only."""
     sess, name = pilot.session, pilot.input_name
-    x = pilot._preprocess(image)
+    x = pilot._preprocess(image).copy()
     perf = time.perf_counter
-    bare: list[float] = []
-    pred: list[float] = []
-    for _ in range(10):  # warm both paths
+    bare = np.empty(calls)
+    scaled = np.empty(calls)
+    pred = np.empty(calls)
+    for _ in range(20):  # warm all paths
         sess.run(None, {name: x})
         pilot.predict(image)
-    for _ in range(rounds):
-        for _ in range(per_round):
-            a = perf()
-            sess.run(None, {name: x})
-            bare.append(perf() - a)
-        for _ in range(per_round):
-            a = perf()
-            pilot.predict(image)
-            pred.append(perf() - a)
-    return _ms(bare), _ms(pred)
+    for i in range(calls):
+        a = perf()
+        sess.run(None, {name: x})
+        b = perf()
+        sess.run(None, {name: (image.astype(np.float32) / np.float32(255.0))[None]})
+        c = perf()
+        pilot.predict(image)
+        d = perf()
+        bare[i], scaled[i], pred[i] = b - a, c - b, d - c
+    return _ms(bare), _ms(scaled), _ms(pred)
 
 
 class Camera:
@@ -98,8 +105,7 @@ def in_tick(path: Path, image: np.ndarray, rate_hz: float, ticks: int) -> dict:
 
 def measure_model(label: str, path: Path, image: np.ndarray, quick: bool) -> dict:
     pilot = OnnxPilot(path, offload=False)
-    rounds, per_round = (10, 50) if quick else (20, 200)
-    bare, pred = bare_and_predict(pilot, image, rounds, per_round)
+    bare, scaled, pred = bare_and_predict(pilot, image, 500 if quick else 4000)
     flat = in_tick(path, image, 1e6, 500 if quick else 4000)
     paced = in_tick(path, image, 20.0, 40 if quick else 300)
     return {
@@ -107,9 +113,11 @@ def measure_model(label: str, path: Path, image: np.ndarray, quick: bool) -> dic
         "file_bytes": path.stat().st_size,
         "threads": pilot.intra_op_threads,
         "session_run": bare,
+        "session_run_with_scaling": scaled,
         "predict": pred,
         "run_in_tick": flat,
         "run_at_20hz": paced,
+        "scaling_overhead_pct": (scaled["p50_ms"] / bare["p50_ms"] - 1) * 100,
         "predict_overhead_pct": (pred["p50_ms"] / bare["p50_ms"] - 1) * 100,
         "run_overhead_pct": (flat["p50_ms"] / bare["p50_ms"] - 1) * 100,
     }
@@ -159,6 +167,7 @@ def table(results: dict) -> str:
     for m in results["models"]:
         rows = (
             ("session.run (floor)", m["session_run"], "-"),
+            ("frame / 255 + session.run", m["session_run_with_scaling"], f"{m['scaling_overhead_pct']:+.1f} %"),
             ("predict()", m["predict"], f"{m['predict_overhead_pct']:+.1f} %"),
             ("run() in a tick, flat out", m["run_in_tick"], f"{m['run_overhead_pct']:+.1f} %"),
             ("run() in a tick, 20 Hz", m["run_at_20hz"], "-"),

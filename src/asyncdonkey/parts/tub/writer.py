@@ -201,6 +201,7 @@ class TubWriter:
         # thread coordination
         self._wake = threading.Event()
         self._release_time: Callable[[], None] = lambda: None  # undoes the virtual clock's hold, if any
+        self._notify_idle: Callable[[], object] = _noop  # wakes a virtual-clock loop when the queue runs dry
         self._closing = False
         self._abandon = False
         self._closed = False
@@ -247,9 +248,12 @@ class TubWriter:
                 return wall0 + (vnow() - v0)
 
             self._now = virtual_now
-            hold = getattr(asyncio.get_running_loop(), "hold_time_while", None)
+            loop = asyncio.get_running_loop()
+            hold = getattr(loop, "hold_time_while", None)
             if hold is not None:
                 self._release_time = hold(self._has_unwritten, self._label)
+                # and tell the loop when the queue runs dry, so time moves on without waiting for a poll
+                self._notify_idle = lambda: loop.call_soon_threadsafe(_noop)
         else:
             self._now = time.time
         return self._now()
@@ -348,6 +352,8 @@ class TubWriter:
                     logger.exception("%s: unexpected error writing a record: %r", self._label, exc)
                 else:
                     self._written += 1
+                    if not q:
+                        self._notify_idle()
                     last_record = mono()
                     lat = last_record - t_mono
                     latencies.append(lat)
@@ -509,3 +515,7 @@ def _shutdown_at_exit(ref: weakref.ref[TubWriter]) -> None:
     writer = ref()
     if writer is not None:
         writer.shutdown()
+
+
+def _noop() -> None:
+    pass

@@ -1,0 +1,185 @@
+"""Run every benchmark and print one results table; ``--write-readme`` also puts it into README.md.
+
+    python benchmarks/run_all.py                  # full runs (about five minutes with Donkeycar installed)
+    python benchmarks/run_all.py --quick          # short runs, for a look
+    python benchmarks/run_all.py --write-readme   # `make bench`: full runs, README table and results JSON
+
+Each benchmark runs in its own process with ``--json`` (so one cannot warm up or disturb another), one after
+the other (they are timing benchmarks: running them side by side on two cores would measure each other). The
+table shows asyncdonkey beside Donkeycar 5.3 where Donkeycar is installed, and the ratio in the direction
+"how many times better": Donkeycar's figure over ours for times and errors, ours over Donkeycar's for rates.
+The README's table is replaced between its ``benchmarks:begin`` / ``benchmarks:end`` markers, with the machine
+it ran on and its load average at the start (figures from a busy machine are worse, and say so).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+README = ROOT / "README.md"
+RESULTS = HERE / "results" / "latest.json"
+BEGIN, END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
+
+Row = tuple[str, str, str, str, str]  # benchmark, figure, asyncdonkey, Donkeycar 5.3, ratio
+
+
+def run_benchmark(name: str, quick: bool) -> dict[str, Any]:
+    """``python benchmarks/<name>.py --json [--quick]`` in a fresh process; its JSON output."""
+    cmd = [sys.executable, str(HERE / f"{name}.py"), "--json", *(["--quick"] if quick else [])]
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise SystemExit(f"run_all: {name}.py failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
+    out = proc.stdout
+    try:
+        data = json.loads(out[out.index("{") :])  # tolerate a banner before the JSON
+    except ValueError:
+        raise SystemExit(f"run_all: {name}.py printed no JSON:\n{out[-2000:]}") from None
+    print(f"  {name}.py: {time.monotonic() - t0:.0f} s", file=sys.stderr)
+    return data
+
+
+def _get(d: Any, *path: str) -> Any:
+    for key in path:
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def _fmt(x: Any, digits: int = 2) -> str:
+    if x is None:
+        return "–"
+    if isinstance(x, float) and abs(x) >= 1000:
+        return f"{x:,.0f}"
+    return f"{x:.{digits}f}" if isinstance(x, float) else str(x)
+
+
+def _ratio(ours: Any, theirs: Any, higher_is_better: bool = False) -> str:
+    if ours is None or theirs is None:
+        return "–"
+    a, b = (abs(ours), abs(theirs)) if not higher_is_better else (theirs, ours)
+    if a == 0:
+        return "∞" if b else "="
+    return f"{b / a:,.0f}×" if b / a >= 10 else f"{b / a:.1f}×"
+
+
+def loop_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for rate in ("20", "100", "1000"):
+        ours, dk = _get(d, "rates", rate, "ours") or {}, _get(d, "rates", rate, "donkeycar") or {}
+        for key, label, digits in (("rate_error_ppm", "rate error (ppm)", 0), ("lateness_p99_ms", "lateness p99 (ms)", 3)):
+            o, t = ours.get(key), dk.get(key)
+            rows.append((f"loop {rate} Hz", label, _fmt(o, digits), _fmt(t, digits), _ratio(o, t)))
+    o, t = _get(d, "overhead_us", "ours"), _get(d, "overhead_us", "donkeycar")
+    rows.append(("loop", "per-part overhead (µs)", _fmt(o), _fmt(t), _ratio(o, t)))
+    return rows
+
+
+def tub_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for key, label in (("p50_ms", "p50"), ("p99_ms", "p99"), ("max_ms", "max")):
+        o, t = _get(d, "ours", "20hz", key), _get(d, "donkeycar", "20hz", key)
+        rows.append(("tub 20 Hz", f"in-loop cost {label} (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+    o, t = _get(d, "ours", "drain", "records_per_s"), _get(d, "donkeycar", "flat", "records_per_s")
+    rows.append(("tub", "sustained records/s", _fmt(o, 0), _fmt(t, 0), _ratio(o, t, higher_is_better=True)))
+    return rows
+
+
+def pilot_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for m in d.get("models", []):
+        name = m.get("model", "?")
+        rows.append((f"pilot: {name}", "bare session.run p50 (ms)", _fmt(_get(m, "session_run", "p50_ms"), 3), "", ""))
+        rows.append((f"pilot: {name}", "OnnxPilot.predict p50 (ms)", _fmt(_get(m, "predict", "p50_ms"), 3), "", ""))
+        rows.append((f"pilot: {name}", "predict overhead (%)", _fmt(m.get("predict_overhead_pct"), 1), "", ""))
+    return rows
+
+
+BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
+    "loop": loop_rows,
+    "tub": tub_rows,
+    "pilot": pilot_rows,
+}
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
+    return (
+        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
+        f"Python {platform.python_version()}; load average at start {load}"
+    )
+
+
+def markdown(rows: list[Row], where: str, when: str, quick: bool) -> str:
+    lines = [
+        f"Measured {when} on {where}{' (quick runs)' if quick else ''} by `make bench`.",
+        "",
+        "| benchmark | figure | asyncdonkey | Donkeycar 5.3 | better by |",
+        "|---|---|---:|---:|---:|",
+    ]
+    lines += [f"| {b} | {f} | {o} | {t} | {r} |" for b, f, o, t, r in rows]
+    return "\n".join(lines)
+
+
+def write_readme(table: str) -> None:
+    text = README.read_text()
+    block = f"{BEGIN}\n{table}\n{END}"
+    if BEGIN in text and END in text:
+        text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), lambda _m: block, text, flags=re.S)
+    else:
+        text = text.rstrip("\n") + "\n\n## Benchmarks\n\n" + block + "\n"
+    README.write_text(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="short runs of each benchmark")
+    ap.add_argument("--write-readme", action="store_true", help="replace the README's results table")
+    ap.add_argument("--only", choices=sorted(BENCHMARKS), action="append", help="run only these benchmarks")
+    args = ap.parse_args(argv)
+
+    where = machine()
+    when = dt.date.today().isoformat()
+    print(f"benchmarks on {where}", file=sys.stderr)
+    results: dict[str, Any] = {"machine": where, "date": when, "quick": args.quick}
+    rows: list[Row] = []
+    for name, to_rows in BENCHMARKS.items():
+        if args.only and name not in args.only:
+            continue
+        data = run_benchmark(name, args.quick)
+        results[name] = data
+        rows += to_rows(data)
+    table = markdown(rows, where, when, args.quick)
+    print(table)
+    if args.write_readme:
+        write_readme(table)
+        RESULTS.parent.mkdir(exist_ok=True)
+        RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+        print(f"wrote the table into {README.name} and the figures into {RESULTS.relative_to(ROOT)}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,29 @@
+"""asyncdonkey.testing exposes every device model by name, loading each module only when used."""
+
+import subprocess
+import sys
+
+import asyncdonkey.testing as testing
+
+
+def test_every_exported_name_resolves_to_the_object_in_its_module():
+    for name in testing.__all__:
+        obj = getattr(testing, name)
+        assert obj is not None
+        module = getattr(obj, "__module__", "")
+        assert module.startswith("asyncdonkey.testing"), (name, module)
+
+
+def test_unknown_names_raise_attribute_error():
+    try:
+        testing.NoSuchModel  # noqa: B018
+    except AttributeError as exc:
+        assert "NoSuchModel" in str(exc)
+    else:
+        raise AssertionError("expected AttributeError")
+
+
+def test_the_virtual_clock_alone_does_not_import_opencv():
+    code = "import sys, asyncdonkey.testing as t; t.VirtualClockLoop; print('cv2' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

@@ -45,12 +45,16 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
     if spec is None or spec.loader is None:
         raise CarFileError(f"{p}: cannot be loaded as a Python module")
     module = importlib.util.module_from_spec(spec)
+    # registered like an imported module, so dataclasses and pickling in the car file find it
+    sys.modules[spec.name] = module
     sys.path.insert(0, str(p.resolve().parent))
     try:
         spec.loader.exec_module(module)
     except SyntaxError as exc:
+        sys.modules.pop(spec.name, None)
         raise CarFileError(f"{p}:{exc.lineno}: syntax error: {exc.msg}") from None
     except Exception as exc:
+        sys.modules.pop(spec.name, None)
         raise CarFileError(f"{p}: importing it raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
     finally:
         with_path = str(p.resolve().parent)

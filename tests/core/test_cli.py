@@ -139,3 +139,28 @@ def test_part_failure_exit_code_and_message(tmp_path):
     proc = run_cli("run", str(car), "--max-loops", "3")
     assert proc.returncode == 1
     assert "part 'camera' failed on tick 0: KeyError" in proc.stderr.strip().splitlines()[-1]
+
+
+def test_car_file_with_dataclasses_and_postponed_annotations(tmp_path):
+    """The car file is imported like a module (registered in sys.modules), so a dataclass settings object
+    under ``from __future__ import annotations`` works as it does in any imported file."""
+    car = write(
+        tmp_path,
+        "settings_car.py",
+        """
+        from __future__ import annotations
+        from dataclasses import dataclass, field
+        from asyncdonkey import Vehicle
+
+        @dataclass
+        class Settings:
+            pins: list[str] = field(default_factory=lambda: ["PCA9685.1:40.1"])
+
+        def build():
+            assert Settings().pins == ["PCA9685.1:40.1"]
+            return Vehicle()
+        """,
+    )
+    proc = run_cli("run", str(car), "--max-loops", "2", "--no-uvloop")
+    assert proc.returncode == 0, proc.stderr
+    assert "loops: 2" in proc.stderr

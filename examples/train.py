@@ -1,7 +1,7 @@
 """Train a pilot on the simulator in seconds (numpy only) and export it to ONNX.
 
     python examples/train.py --out models/sim_pilot.onnx
-    python examples/train.py --tub data/tub_1 --out models/sim_pilot.onnx    # start from a recorded session
+    python examples/train.py --tub data/tub --out models/pilot.onnx          # start from a recorded session
 
 1. Collect: the scripted driver drives the simulated car headless (no event loop, as fast as the CPU allows);
    short steering pulses are added to what the car executes, not to the labels, so the data shows how to

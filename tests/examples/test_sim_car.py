@@ -1,24 +1,11 @@
 """examples/car.py, the README's `make run`: the simulated car drives laps on the virtual clock."""
 
-import importlib.util
 import io
-import sys
-from pathlib import Path
 
 import pytest
+from example_loader import load_example
 
 from asyncdonkey.parts.tub import Tub
-
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-
-
-def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
 
 car_py = load_example("car")
 

@@ -1,23 +1,14 @@
 """examples/car_pi.py built against device models: an MJPG file as the camera, a FIFO joystick, simulated I2C."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from example_loader import load_example
 
 from asyncdonkey.parts.tub import Tub
 from asyncdonkey.testing.camera_models import write_test_video
 from asyncdonkey.testing.i2c_models import I2CSimulator, MPU6050Model, PCA9685Model
 from asyncdonkey.testing.joystick_model import JoystickModel
-
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "car_pi.py"
-
-
-def load_example():
-    spec = importlib.util.spec_from_file_location("car_pi_example", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 class Rig:
@@ -69,7 +60,7 @@ class Driver:
 
 
 def test_settings_override_with_donkeycar_names():
-    car_pi = load_example()
+    car_pi = load_example("car_pi")
     cfg, args = car_pi.parse_args(["--model", "m.onnx", "STEERING_LEFT_PWM=470", "HAVE_IMU=false", "CAMERA_INDEX=2"])
     assert (cfg.STEERING_LEFT_PWM, cfg.HAVE_IMU, cfg.CAMERA_INDEX, args.model) == (470, False, 2, "m.onnx")
     assert cfg.PWM_STEERING_THROTTLE["STEERING_LEFT_PWM"] == 470
@@ -82,7 +73,7 @@ def test_settings_override_with_donkeycar_names():
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_car_drives_records_and_stops_on_models(rig):
-    car_pi = load_example()
+    car_pi = load_example("car_pi")
     v = car_pi.build(rig.argv("JOYSTICK_DEADZONE=0.0"), buses=rig.buses)
     pad = rig.pad
 
@@ -121,7 +112,7 @@ async def test_car_drives_records_and_stops_on_models(rig):
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_pilot_modes_without_a_model_stay_user(rig):
-    car_pi = load_example()
+    car_pi = load_example("car_pi")
     v = car_pi.build(rig.argv("HAVE_IMU=false"), buses=rig.buses)
     modes = []
 
@@ -133,3 +124,36 @@ async def test_pilot_modes_without_a_model_stay_user(rig):
     v.add(Watch(), inputs=["user/mode"])
     await v.run(rate_hz=20, max_loop_count=6)
     assert modes == ["user"] * 6
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_with_a_model_the_mode_button_hands_steering_to_the_pilot(rig):
+    car_pi = load_example("car_pi")
+    model = str(Path(__file__).resolve().parents[2] / "examples" / "models" / "sim_pilot.onnx")
+    v = car_pi.build(rig.argv("HAVE_IMU=false", "--model", model), buses=rig.buses)
+    seen = []
+
+    class Watch:
+        def run(self, mode, run_pilot, pilot_angle, angle, user_throttle, throttle):
+            seen.append((mode, bool(run_pilot), pilot_angle, angle, user_throttle, throttle))
+
+    def stick():
+        rig.pad.move_axis(0, -32767)  # the user steers full left
+        rig.pad.move_axis(4, -16384)  # and opens the throttle a little
+
+    v.add(Driver(rig, {1: stick, 4: lambda: rig.pad.click(0)}), name="driver")  # A: user -> local_angle
+    v.add(
+        Watch(),
+        inputs=["user/mode", "run_pilot", "pilot/angle", "angle", "user/throttle", "throttle"],
+    )
+    await v.run(rate_hz=20, max_loop_count=10)
+    before = [s for s in seen if s[0] == "user"]
+    after = [s for s in seen if s[0] == "local_angle"]
+    assert before and after
+    assert all(not s[1] and s[2] is None for s in before)  # no inference while the user drives
+    assert all(s[3] == -1.0 for s in before[2:])  # the stick's full left
+    for _mode, run_pilot, pilot_angle, angle, user_throttle, throttle in after:
+        assert run_pilot and pilot_angle is not None
+        assert angle == pilot_angle != -1.0  # steering from the pilot
+        assert throttle == user_throttle > 0  # throttle still the user's

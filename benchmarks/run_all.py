@@ -62,28 +62,38 @@ def _get(d: Any, *path: str) -> Any:
 
 def _fmt(x: Any, digits: int = 2) -> str:
     if x is None:
-        return "–"
+        return "n/a"
     if isinstance(x, float) and abs(x) >= 1000:
         return f"{x:,.0f}"
     return f"{x:.{digits}f}" if isinstance(x, float) else str(x)
 
 
-def _ratio(ours: Any, theirs: Any, higher_is_better: bool = False) -> str:
+def _ratio(ours: Any, theirs: Any, higher_is_better: bool = False, floor: float = 0.0) -> str:
+    """How many times better ours is. Below ``floor`` (the resolution of the figure) ours counts as the
+    floor and the ratio is a bound ("> Nx"): dividing by a measured 0.3 ppm would be noise, not a result."""
     if ours is None or theirs is None:
-        return "–"
-    a, b = (abs(ours), abs(theirs)) if not higher_is_better else (theirs, ours)
-    if a == 0:
-        return "∞" if b else "="
-    return f"{b / a:,.0f}×" if b / a >= 10 else f"{b / a:.1f}×"
+        return "n/a"
+    if higher_is_better:
+        return _times(ours / theirs) if theirs else "n/a"
+    a, b = abs(ours), abs(theirs)
+    if a < floor:
+        return f"> {_times(b / floor)}"
+    return _times(b / a) if a else "n/a"
+
+
+def _times(r: float) -> str:
+    return f"{r:,.0f}x" if r >= 10 else f"{r:.1f}x"
 
 
 def loop_rows(d: dict[str, Any]) -> list[Row]:
     rows: list[Row] = []
     for rate in ("20", "100", "1000"):
         ours, dk = _get(d, "rates", rate, "ours") or {}, _get(d, "rates", rate, "donkeycar") or {}
-        for key, label, digits in (("rate_error_ppm", "rate error (ppm)", 0), ("lateness_p99_ms", "lateness p99 (ms)", 3)):
-            o, t = ours.get(key), dk.get(key)
-            rows.append((f"loop {rate} Hz", label, _fmt(o, digits), _fmt(t, digits), _ratio(o, t)))
+        o, t = ours.get("rate_error_ppm"), dk.get("rate_error_ppm")
+        shown = "< 1" if o is not None and abs(o) < 1 else _fmt(o, 0)  # below the run's resolution
+        rows.append((f"loop {rate} Hz", "rate error (ppm)", shown, _fmt(t, 0), _ratio(o, t, floor=1.0)))
+        o, t = ours.get("lateness_p99_ms"), dk.get("lateness_p99_ms")
+        rows.append((f"loop {rate} Hz", "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
     o, t = _get(d, "overhead_us", "ours"), _get(d, "overhead_us", "donkeycar")
     rows.append(("loop", "per-part overhead (µs)", _fmt(o), _fmt(t), _ratio(o, t)))
     return rows
@@ -158,25 +168,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="short runs of each benchmark")
     ap.add_argument("--write-readme", action="store_true", help="replace the README's results table")
     ap.add_argument("--only", choices=sorted(BENCHMARKS), action="append", help="run only these benchmarks")
+    ap.add_argument(
+        "--from-json", type=Path, metavar="FILE", help=f"no runs: rebuild the table from saved figures ({RESULTS.name})"
+    )
     args = ap.parse_args(argv)
 
-    where = machine()
-    when = dt.date.today().isoformat()
-    print(f"benchmarks on {where}", file=sys.stderr)
-    results: dict[str, Any] = {"machine": where, "date": when, "quick": args.quick}
+    if args.from_json:
+        results = json.loads(args.from_json.read_text())
+        where, when, quick = results["machine"], results["date"], results.get("quick", False)
+    else:
+        where, when, quick = machine(), dt.date.today().isoformat(), args.quick
+        print(f"benchmarks on {where}", file=sys.stderr)
+        results = {"machine": where, "date": when, "quick": quick}
+        for name in BENCHMARKS:
+            if not args.only or name in args.only:
+                results[name] = run_benchmark(name, quick)
     rows: list[Row] = []
     for name, to_rows in BENCHMARKS.items():
-        if args.only and name not in args.only:
-            continue
-        data = run_benchmark(name, args.quick)
-        results[name] = data
-        rows += to_rows(data)
-    table = markdown(rows, where, when, args.quick)
+        if name in results:
+            rows += to_rows(results[name])
+    table = markdown(rows, where, when, quick)
     print(table)
     if args.write_readme:
         write_readme(table)
-        RESULTS.parent.mkdir(exist_ok=True)
-        RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+        if not args.from_json:
+            RESULTS.parent.mkdir(exist_ok=True)
+            RESULTS.write_text(json.dumps(results, indent=2) + "\n")
         print(f"wrote the table into {README.name} and the figures into {RESULTS.relative_to(ROOT)}", file=sys.stderr)
     return 0
 

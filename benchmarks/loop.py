@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import platform
 import sys
 import time
 
@@ -28,6 +27,7 @@ from prettytable import PrettyTable
 
 from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
+from machine_info import describe
 
 try:  # Donkeycar prints a banner on import; keep it out of the figures
     import contextlib
@@ -123,7 +123,7 @@ def donkey_overhead(ticks: int) -> float:
 
 
 def measure(ticks: int, use_uvloop: bool, with_donkey: bool) -> dict:
-    results: dict = {"ticks": ticks, "uvloop": use_uvloop, "rates": {}, "machine": machine()}
+    results: dict = {"ticks": ticks, "uvloop": use_uvloop, "rates": {}, "machine": describe()}
     for rate in RATES:
         n = ticks if rate <= 100 else ticks * 5
         row = {"ours": ours_rate(rate, n, use_uvloop)}
@@ -134,21 +134,6 @@ def measure(ticks: int, use_uvloop: bool, with_donkey: bool) -> dict:
     if with_donkey:
         results["overhead_us"]["donkeycar"] = donkey_overhead(20_000)
     return results
-
-
-def machine() -> str:
-    import os
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
 
 
 def table(results: dict) -> str:

@@ -29,8 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -42,6 +40,7 @@ from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
 from asyncdonkey.parts.pilot import OnnxPilot
 from asyncdonkey.pilot_export import FEATURE_SIZE, export_donkey_linear_shaped, export_linear_pilot
+from machine_info import describe
 
 TARGET_OVERHEAD_PCT = 5.0
 SIM_PILOT = Path(__file__).resolve().parents[1] / "examples" / "models" / "sim_pilot.onnx"
@@ -140,25 +139,12 @@ def measure(quick: bool) -> dict:
         ]
     first = models[0]
     return {
-        "machine": machine(),
+        "machine": describe(),
         "quick": quick,
         "models": models,
         "target_overhead_pct": TARGET_OVERHEAD_PCT,
         "meets_target": first["predict_overhead_pct"] <= TARGET_OVERHEAD_PCT,
     }
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
 
 
 def table(results: dict) -> str:

@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import re
 import subprocess
 import sys
@@ -26,6 +24,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from machine_info import describe
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -126,22 +126,6 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
 }
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
-    return (
-        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
-        f"Python {platform.python_version()}; load average at start {load}"
-    )
-
-
 def markdown(rows: list[Row], where: str, when: str, quick: bool) -> str:
     lines = [
         f"Measured {when} on {where}{' (quick runs)' if quick else ''} by `make bench`.",
@@ -177,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         results = json.loads(args.from_json.read_text())
         where, when, quick = results["machine"], results["date"], results.get("quick", False)
     else:
-        where, when, quick = machine(), dt.date.today().isoformat(), args.quick
+        where, when, quick = describe(with_load=True), dt.date.today().isoformat(), args.quick
         print(f"benchmarks on {where}", file=sys.stderr)
         results = {"machine": where, "date": when, "quick": quick}
         for name in BENCHMARKS:

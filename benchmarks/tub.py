@@ -33,7 +33,6 @@ import io
 import json
 import logging
 import os
-import platform
 import shutil
 import tempfile
 import time
@@ -42,6 +41,7 @@ import numpy as np
 from prettytable import PrettyTable
 
 from asyncdonkey.parts.tub import TubWriter
+from machine_info import describe
 
 try:  # Donkeycar prints a banner on import; keep it out of the figures
     with contextlib.redirect_stdout(io.StringIO()):
@@ -169,7 +169,7 @@ def measure(seconds_paced: float, seconds_flat: float, directory: str | None, fs
     root = tempfile.mkdtemp(prefix="tub-bench-", dir=directory)
     try:
         results: dict = {
-            "machine": machine(),
+            "machine": describe(),
             "directory": root,
             "fsync": fsync,
             "seconds_20hz": seconds_paced,
@@ -201,19 +201,6 @@ def measure(seconds_paced: float, seconds_flat: float, directory: str | None, fs
         "records_per_s": min(o["flat"]["records_per_s"], o["drain"]["records_per_s"]) >= TARGETS["records_per_s"],
     }
     return results
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
 
 
 def table(results: dict) -> str:

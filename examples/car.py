@@ -170,7 +170,7 @@ class Status:
         seconds = (self._t_last - self._t0) if self._t0 is not None else 0.0
         mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
         return (
-            f"drove {self.laps} laps ({self.car.sim.progress:.0f} m) in {seconds:.1f} s: "
+            f"drove {self.laps} lap{'' if self.laps == 1 else 's'} ({self.car.sim.progress:.0f} m) in {seconds:.1f} s: "
             f"mean |cte| {mean_cte:.3f} m, max {self.abs_cte_max:.3f} m, off track {self.off_track_ticks} ticks, "
             f"respawns {self.car.sim.respawns}"
         )

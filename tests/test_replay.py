@@ -18,15 +18,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import onnx  # the test extra has onnx
 import pytest
+from onnx import TensorProto, helper, numpy_helper
 
 from asyncdonkey import Vehicle, get_clock
 from asyncdonkey.parts.tub import Tub, TubNotFoundError, TubWriter
 from asyncdonkey.replay import CSV_COLUMNS, ReplayError, replay
 from asyncdonkey.testing import VirtualClockLoop
-
-onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 CLI = [sys.executable, "-m", "asyncdonkey.cli"]
 INPUTS = ["cam/image_array", "user/angle", "user/throttle"]
@@ -312,7 +311,9 @@ def write_long_tub(path: Path, records: int, rows: int, cols: int) -> Path:
     """
     drive = Drive(rows, cols)
     stamp = iter(1_700_000_000.0 + k * 0.05 for k in range(records))
-    w = TubWriter(path, INPUTS, TYPES, queue_size=records + 1, fsync=False, time_fn=lambda: next(stamp))
+    w = TubWriter(
+        path, INPUTS, TYPES, queue_size=records + 1, fsync=False, time_fn=lambda: next(stamp), drain_timeout_s=300
+    )
     for _ in range(records):
         w.run(*drive.run()[:3])
     w.shutdown()

@@ -284,7 +284,6 @@ def test_run_ignores_none_and_nan_throttle():
 def test_donkeycars_serial_encoder_reads_the_model():
     """Donkeycar's own SerialEncoder + Tachometer (blocking pyserial, in a thread) against the peer: the
     model answers ``r`` / ``p`` the way the sketch does, so Donkeycar counts the same ticks."""
-    pytest.importorskip("donkeycar")
     from donkeycar.parts.serial_port import SerialPort as DkSerialPort
     from donkeycar.parts.tachometer import SerialEncoder, Tachometer
 

@@ -39,7 +39,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from asyncdonkey import Vehicle, get_clock
-from asyncdonkey.parts.control import AutoRecordOnThrottle, DriveMode, PilotCondition, normalise_mode
+from asyncdonkey.parts.control import DRIVE_MODES, AutoRecordOnThrottle, DriveMode, PilotCondition, normalise_mode
 from asyncdonkey.parts.sim import TELEMETRY_OUTPUTS, ScriptedDriver, SimCar, Simulator
 
 DRIVE_LOOP_HZ = 20
@@ -55,6 +55,12 @@ RECORD_INPUTS = (
     ("sim/cte", "float"),
     ("sim/laps", "int"),
 )
+
+
+def recent_lateness_p99_ms(vehicle: Vehicle, ticks: int = 200) -> float | None:
+    """Tick lateness p99 over the last ``ticks`` ticks, in ms (``None`` before the first tick)."""
+    late = vehicle.profiler.lateness.recent(drop_last=False)[-ticks:]
+    return float(np.percentile(late, 99)) * 1e3 if len(late) else None
 
 
 class SimController:
@@ -132,8 +138,7 @@ class Status:
             self.vehicle.stop()
 
     def line(self, hz: float) -> str:
-        late = self.vehicle.profiler.lateness.recent(drop_last=False)[-200:]
-        p99 = float(np.percentile(late, 99)) * 1e3 if len(late) else 0.0
+        p99 = recent_lateness_p99_ms(self.vehicle) or 0.0
         mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
         lap_share = (self.car.sim.progress / self.car.sim.track.length) % 1.0
         return (
@@ -253,7 +258,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         default=str(DEFAULT_MODEL),
         help="ONNX model to drive on, or 'user' for the scripted driver alone (default: the shipped sim pilot)",
     )
-    ap.add_argument("--mode", choices=["user", "local_angle", "local"], help="drive mode (default: local with a pilot)")
+    ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
     ap.add_argument("--seconds", type=float, default=25.0, help="stop after S seconds (0: until Ctrl-C)")
     ap.add_argument("--laps", type=int, default=0, help="stop after N laps (0: no limit)")

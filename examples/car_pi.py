@@ -29,6 +29,7 @@ from typing import Any
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle
 from asyncdonkey.parts.camera import CvCamera
+from asyncdonkey.parts.control import DRIVE_MODES, DriveMode, PilotCondition
 from asyncdonkey.parts.controller import JoystickController, JoystickMapping
 from asyncdonkey.parts.imu import IMU
 from asyncdonkey.parts.tub import TubWriter
@@ -169,13 +170,10 @@ def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig 
         record_button=cfg.JOYSTICK_RECORD_BUTTON,
         estop_button=cfg.JOYSTICK_ESTOP_BUTTON,
         # Without a pilot there is nobody to hand the wheel to: the mode stays "user".
-        modes=("user", "local_angle", "local") if args.model else ("user",),
+        modes=DRIVE_MODES if args.model else ("user",),
     )
     controller = JoystickController(cfg.JOYSTICK_DEVICE_FILE, mapping, max_throttle=cfg.JOYSTICK_MAX_THROTTLE)
     v.add(controller, outputs=controller.outputs, name="joystick")
-
-    # Written by other modules of the package; imported here so this file loads even where they are optional.
-    from asyncdonkey.parts.control import DriveMode, PilotCondition
 
     if args.model:
         from asyncdonkey.parts.pilot import OnnxPilot

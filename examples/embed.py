@@ -27,11 +27,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from asyncdonkey import DriveReport, Vehicle
-from car import DEFAULT_MODEL, make_car
+from car import DEFAULT_MODEL, make_car, recent_lateness_p99_ms
 
 log = logging.getLogger("embed")
 
@@ -39,7 +37,7 @@ log = logging.getLogger("embed")
 def snapshot(vehicle: Vehicle) -> dict[str, Any]:
     """What the app reports about the car: channels plus the loop's recent timing."""
     mem = vehicle.mem
-    late = vehicle.profiler.lateness.recent(drop_last=False)[-200:]
+    p99 = recent_lateness_p99_ms(vehicle)
     return {
         "ticks": vehicle.profiler.tick.count,
         "laps": mem.get(["sim/laps"])[0],
@@ -48,7 +46,7 @@ def snapshot(vehicle: Vehicle) -> dict[str, Any]:
         "mode": mem.get(["user/mode"])[0],
         "angle": _rounded(mem.get(["angle"])[0]),
         "throttle": _rounded(mem.get(["throttle"])[0]),
-        "lateness_p99_ms": round(float(np.percentile(late, 99)) * 1e3, 3) if len(late) else None,
+        "lateness_p99_ms": None if p99 is None else round(p99, 3),
     }
 
 

@@ -40,12 +40,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..hw.joystick import JoystickEvent, JoystickReader
+from .control import DRIVE_MODES
 
 __all__ = ["CONTROLLER_OUTPUTS", "DRIVE_MODES", "JoystickController", "JoystickMapping"]
 
 logger = logging.getLogger(__name__)
 
-DRIVE_MODES = ("user", "local_angle", "local")
 CONTROLLER_OUTPUTS = ("user/angle", "user/throttle", "user/mode", "recording")
 
 

@@ -10,8 +10,17 @@ def test_every_exported_name_resolves_to_the_object_in_its_module():
     for name in testing.__all__:
         obj = getattr(testing, name)
         assert obj is not None
-        module = getattr(obj, "__module__", "")
-        assert module.startswith("asyncdonkey.testing"), (name, module)
+        module = getattr(obj, "__module__", None)
+        assert module is None or module.startswith("asyncdonkey.testing"), (name, module)
+
+
+def test_the_lazy_name_lists_match_each_models_module():
+    """The names are listed here so nothing is imported until used; they must not drift from the modules."""
+    import importlib
+
+    for module, names in testing._LAZY.items():
+        mod = importlib.import_module(f"asyncdonkey.testing.{module}")
+        assert sorted(names) == sorted(mod.__all__), module
 
 
 def test_unknown_names_raise_attribute_error():

@@ -50,7 +50,7 @@ _LAZY = {
         "SimulatedWheel",
         "nmea_sentence",
     ),
-    "camera_models": ("make_frame_bgr", "frame_number", "write_image_folder", "write_test_video"),
+    "camera_models": ("FRAME_BITS", "make_frame_bgr", "frame_number", "write_image_folder", "write_test_video"),
     "joystick_model": ("JoystickModel",),
 }
 _WHERE = {name: module for module, names in _LAZY.items() for name in names}

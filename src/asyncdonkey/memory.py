@@ -1,12 +1,18 @@
-"""Memory: the named channels parts read and write, with Donkeycar's API plus write times.
+"""Memory: the named channels parts read and write, with Donkeycar's API plus the age of every value.
 
 Donkeycar's ``Memory`` is a dict with a few helpers; asyncdonkey keeps that API so existing code that pokes at
-``vehicle.mem`` keeps working, and adds one thing Donkeycar lacks: *when* each channel was last written, on
-the runtime clock. That makes staleness measurable (DESIGN.md §3.3): an actuator can tell that its throttle
-command is 300 ms old because the pilot stopped publishing, and fall back to neutral.
+``vehicle.mem`` keeps working, and adds what Donkeycar lacks: for each channel, *when it was last written* and
+*how old the sensing behind its value is*, both on the runtime clock.
 
-The drive loop writes through :meth:`Memory._store` with the time it already measured, so stamping costs no
-extra clock read on the hot path.
+Why two times. A value's age is the age of the sensing behind it (a camera frame's capture, a sensor read, a
+controller event's arrival), not of its last write: a drive-mode selector that re-publishes a stale pilot
+command every tick writes a fresh value of old data. ``stamps`` keeps the write time (what Donkeycar users
+would call "last set"); ``origins`` keeps the origin time that the drive loop propagates from a part's inputs
+to its outputs (see ``docs/provenance.md``). ``"<channel>@age"`` inputs and :meth:`Memory.age` are
+``now - origin``. A plain write from outside the loop (``mem["x"] = 1``) is its own origin.
+
+The drive loop writes the dicts directly with times it already measured, so stamping costs no extra clock
+read on the hot path.
 """
 
 from __future__ import annotations
@@ -27,17 +33,34 @@ class Memory:
     ``keys``, ``values``, ``items``. The dict itself is ``mem.d``, as in Donkeycar.
     """
 
-    __slots__ = ("_now", "d", "stamps")
+    __slots__ = ("_now", "d", "dormant", "origins", "stamps")
 
     def __init__(self, clock: Callable[[], float] | None = None) -> None:
         self.d: dict[str, Any] = {}
         #: channel → runtime-clock time of the last write
         self.stamps: dict[str, float] = {}
+        #: channel → runtime-clock time of the sensing behind the current value (its origin)
+        self.origins: dict[str, float] = {}
+        #: channels whose producing part was skipped by its run condition on the current tick: their (old)
+        #: origins do not count when a consumer's origin is inherited (see ``docs/provenance.md``)
+        self.dormant: set[str] = set()
         self._now: Callable[[], float] = clock or time.monotonic
 
     def use_clock(self, now: Callable[[], float]) -> None:
-        """Stamp writes with ``now`` from here on (the Vehicle passes the clock of the loop it runs on)."""
+        """Stamp writes with ``now`` from here on (the Vehicle passes the clock of the loop it runs on).
+
+        Times taken on another clock cannot be compared with the new one (a channel preset on the monotonic
+        clock before a virtual-clock drive would be hundreds of seconds "in the future"), so when the clock
+        changes every existing value is re-stamped as written, and sensed, now: it then ages normally, and a
+        preset command still trips a stale-command failsafe after its window.
+        """
+        if now is self._now:
+            return
         self._now = now
+        t = now()
+        for k in self.d:
+            self.stamps[k] = t
+            self.origins[k] = t
 
     # -- Donkeycar's API -------------------------------------------------------------------------------
     def __setitem__(self, key: str | Sequence[str], value: Any) -> None:
@@ -100,20 +123,36 @@ class Memory:
         return self.d.items()
 
     # -- write times -----------------------------------------------------------------------------------
+    def set(self, key: str, value: Any, origin: float | None = None) -> None:
+        """Write one channel whose value was sensed at ``origin`` (runtime clock; default: now).
+
+        For code outside the drive loop that knows how old its data is: a network receiver, a web request
+        handler, a test presetting a stale command.
+        """
+        now = self._now()
+        self._store(key, value, now, now if origin is None else origin)
+
     def written_at(self, key: str) -> float | None:
         """Runtime-clock time of the last write to ``key``, or ``None`` if it was never written."""
         return self.stamps.get(key)
 
+    def origin(self, key: str) -> float | None:
+        """Runtime-clock time of the sensing behind ``key``'s value, or ``None`` if it was never written."""
+        return self.origins.get(key)
+
     def age(self, key: str, now: float | None = None) -> float:
-        """Seconds since ``key`` was last written (``inf`` if never)."""
-        t = self.stamps.get(key)
+        """Seconds since the sensing behind ``key``'s value (``inf`` if never written); what ``@age`` gives."""
+        t = self.origins.get(key)
         if t is None:
             return math.inf
         return (self._now() if now is None else now) - t
 
-    def _store(self, key: str, value: Any, now: float) -> None:
+    def _store(self, key: str, value: Any, now: float, origin: float | None = None) -> None:
         self.d[key] = value
         self.stamps[key] = now
+        self.origins[key] = now if origin is None else origin
+        if self.dormant:
+            self.dormant.discard(key)
 
     def __repr__(self) -> str:
         return f"Memory({self.d!r})"

@@ -29,7 +29,7 @@ PERCENTILES = (50.0, 90.0, 99.0, 99.9)
 class Series:
     """A bounded series of durations in seconds."""
 
-    __slots__ = ("_buf", "count", "first", "max", "min", "name", "skip_first", "window")
+    __slots__ = ("_buf", "count", "evicted_max", "evicted_min", "first", "name", "skip_first", "window")
 
     def __init__(self, name: str, window: int = DEFAULT_WINDOW, skip_first: bool = True) -> None:
         self.name = name
@@ -38,19 +38,39 @@ class Series:
         self._buf = array("d", bytes(8 * window))
         self.count = 0  # samples recorded into the ring (the skipped first one excluded)
         self.first: float | None = None
-        self.min = math.inf
-        self.max = -math.inf
+        # extremes of the samples that fell out of the window: with the window's own, the run-long extremes
+        # (kept this way, not updated per sample, so that the newest sample, which the report ignores, never
+        # leaks into them)
+        self.evicted_min = math.inf
+        self.evicted_max = -math.inf
 
     def record(self, value: float) -> None:
         if self.skip_first and self.first is None:
             self.first = value
             return
-        self._buf[self.count % self.window] = value
+        i = self.count % self.window
+        if self.count >= self.window:
+            old = self._buf[i]
+            if old > self.evicted_max:
+                self.evicted_max = old
+            if old < self.evicted_min:
+                self.evicted_min = old
+        self._buf[i] = value
         self.count += 1
-        if value > self.max:
-            self.max = value
-        if value < self.min:
-            self.min = value
+
+    @property
+    def last(self) -> float | None:
+        """The newest sample, or ``None`` before the first."""
+        return self._buf[(self.count - 1) % self.window] if self.count else None
+
+    @property
+    def max(self) -> float:
+        """Run-long maximum of every sample recorded (the skipped first one excluded)."""
+        return max(self.evicted_max, float(self.recent(drop_last=False).max(initial=-math.inf)))
+
+    @property
+    def min(self) -> float:
+        return min(self.evicted_min, float(self.recent(drop_last=False).min(initial=math.inf)))
 
     def recent(self, drop_last: bool = True) -> np.ndarray:
         """The samples in the window, oldest first (the newest dropped when ``drop_last``)."""
@@ -78,8 +98,8 @@ class Series:
         for p, v in zip(PERCENTILES, pct, strict=True):
             out[_pct_key(p)] = float(v) * 1e3
         if self.count > self.window:  # run-long extremes reach beyond the window
-            out["max"] = max(out["max"], self.max * 1e3)
-            out["min"] = min(out["min"], self.min * 1e3)
+            out["max"] = max(out["max"], self.evicted_max * 1e3)
+            out["min"] = min(out["min"], self.evicted_min * 1e3)
         return out
 
 
@@ -88,11 +108,14 @@ def _pct_key(p: float) -> str:
 
 
 class Profiler:
-    """Holds one :class:`Series` per part plus the loop series (lateness, overrun, tick duration)."""
+    """One :class:`Series` per part, the loop series (lateness, overrun, tick duration) and, per actuator,
+    the sensing-to-actuation latency (the time a command reached the actuator's output minus the origin of the
+    sensing behind it)."""
 
     def __init__(self, window: int = DEFAULT_WINDOW) -> None:
         self.window = window
         self.parts: dict[str, Series] = {}
+        self.latency: dict[str, Series] = {}
         self.lateness = Series("tick lateness", window, skip_first=False)
         self.overrun = Series("tick overrun", window, skip_first=False)
         self.tick = Series("tick duration", window, skip_first=False)
@@ -103,10 +126,18 @@ class Profiler:
             s = self.parts[name] = Series(name, self.window)
         return s
 
+    def latency_for(self, name: str) -> Series:
+        s = self.latency.get(name)
+        if s is None:
+            s = self.latency[name] = Series(f"latency {name}", self.window, skip_first=False)
+        return s
+
     def as_dict(self) -> dict[str, Any]:
-        """Machine-readable report: ``{"parts": {name: {max, min, avg, 50%, ...}}, "loop": {...}}`` in ms."""
+        """Machine-readable report in ms: ``{"parts": {name: {max, min, avg, 50%, ...}}, "loop": {...},
+        "latency": {actuator: {...}}}``."""
         return {
             "parts": {name: s.summary() for name, s in self.parts.items()},
+            "latency": {name: s.summary(drop_last=False) for name, s in self.latency.items()},
             "loop": {
                 "lateness": self.lateness.summary(drop_last=False),
                 "overrun": self.overrun.summary(drop_last=False),
@@ -120,7 +151,7 @@ class Profiler:
         pt.field_names = ["part", "max", "min", "avg", *(_pct_key(p) for p in PERCENTILES)]
         for name, s in self.parts.items():
             _add_row(pt, name, s.summary())
-        for s in (self.lateness, self.overrun, self.tick):
+        for s in (self.lateness, self.overrun, self.tick, *self.latency.values()):
             _add_row(pt, f"[{s.name}]", s.summary(drop_last=False))
         text = "Part Profile Summary: (times in ms)\n" + pt.get_string()
         for label, value in extra_rows:

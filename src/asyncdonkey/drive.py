@@ -1,0 +1,352 @@
+"""One drive: the state of a single ``Vehicle.run()``, from its first tick to its report.
+
+A :class:`~asyncdonkey.loop.Vehicle` is the car's *definition* (its parts and channels) and can be driven
+again and again; everything that belongs to one run lives here and is made fresh each time: the clock, the
+profiler, error counts, the stop latch, the background tasks and ``update()`` threads, the watchdog, and the
+counters the report is made of. So a second run reports only itself, a ``stop()`` meant for one run cannot
+leak into another, and every ending (done, stopped, failed, cancelled) fills the same report.
+
+The tick (:meth:`Drive.tick_loop`) is flat: for each prepared entry, check its run condition, read its
+inputs, call it, store its outputs with their origins, record its time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from .clock import Clock
+from .errors import PartError
+from .memory import Memory
+from .plan import Entry
+from .profiler import Profiler
+from .ratelimit import LogThrottle
+from .signals import PartInterrupted
+
+if TYPE_CHECKING:
+    from .loop import DriveReport
+    from .watchdog import Watchdog
+
+__all__ = ["Drive"]
+
+logger = logging.getLogger("asyncdonkey.loop")
+
+#: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
+_TIME_EPS = 1e-9
+_TICK_EPS = 1e-6  # in periods: a deadline this close to `now` counts as passed
+
+
+class Drive:
+    """The state of one run. Made by ``Vehicle.run()``; not meant to be built by users."""
+
+    def __init__(
+        self,
+        entries: tuple[Entry, ...],
+        mem: Memory,
+        clock: Clock,
+        loop: asyncio.AbstractEventLoop,
+        profiler: Profiler,
+        report: DriveReport,
+        *,
+        stop_grace_s: float,
+        block_report_s: float,
+    ) -> None:
+        self.entries = entries
+        self.mem = mem
+        self.clock = clock
+        self.loop = loop
+        self.profiler = profiler
+        self.report = report
+        self.stop_grace_s = stop_grace_s
+        self.block_report_s = block_report_s
+        # stop latch
+        self.stop_requested = False
+        self.stop_reason = ""
+        self._wake: asyncio.Future[None] | None = None
+        self._grace_handle: asyncio.TimerHandle | None = None
+        # background work owned by this run
+        self.tasks: list[tuple[Entry, asyncio.Task[Any]]] = []
+        self.threads: list[tuple[Entry, threading.Thread]] = []
+        self.executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self.background_error: PartError | None = None
+        self.on = False
+        self.watchdog: Watchdog | None = None
+        # what the loop thread is doing (read by the watchdog thread)
+        self.current: Entry | None = None
+        self.part_started = math.inf
+        self._awaiting: Any = None
+        self._grace_cancel = False
+        self.task: asyncio.Task[Any] | None = None
+        # counters (attributes, so any ending can fill the report)
+        self.loops = 0
+        self.overruns = 0
+        self.skipped = 0
+        self.first_start = self.last_start = self.last_end = 0.0
+        self._errlog = LogThrottle(1.0)
+        self._blocklog = LogThrottle(1.0)
+        self.longest_block: tuple[float, str] | None = None
+        for e in entries:
+            e.errors = 0
+            e.series = profiler.series_for(e.name)
+
+    # ----------------------------------------------------------------------------------------- executor
+    def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:
+        if self.executor is None:
+            self.executor = concurrent.futures.ThreadPoolExecutor(
+                max_workers=4, thread_name_prefix="asyncdonkey-offload"
+            )
+        return self.executor
+
+    # ---------------------------------------------------------------------------------------- stopping
+    def request_stop(self, reason: str = "stop()") -> None:
+        """Stop after the current tick. Safe from any thread and from a signal handler."""
+        if not self.stop_requested:
+            self.stop_requested = True
+            self.stop_reason = self.stop_reason or reason
+        loop = self.loop
+        if not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._on_stop_requested)
+            except RuntimeError:  # the loop closed in between
+                pass
+
+    def _on_stop_requested(self) -> None:
+        w = self._wake
+        if w is not None and not w.done():
+            w.set_result(None)
+        # an awaited part that does not return within the grace is cancelled, so a stop always ends the tick
+        if self._grace_handle is None and self.on:
+            self._grace_handle = self.loop.call_later(self.stop_grace_s, self._cancel_awaited_part)
+
+    def _cancel_awaited_part(self) -> None:
+        """Interrupt an awaited part that outlived the stop grace by cancelling the drive task at its await."""
+        task = self.task
+        if self._awaiting is not None and task is not None and not task.done():
+            name = self.current.name if self.current is not None else "?"
+            logger.error(
+                "part %r did not return within %.1f s of the stop request: cancelling it", name, self.stop_grace_s
+            )
+            self._grace_cancel = True
+            task.cancel()
+
+    # ------------------------------------------------------------------------------------- background
+    def start_background(self) -> None:
+        for e in self.entries:
+            if e.threaded == "thread":
+                t = threading.Thread(target=self._thread_main, args=(e,), name=f"part:{e.name}", daemon=True)
+                self.threads.append((e, t))
+                t.start()
+            elif e.threaded == "task":
+                task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
+                task.add_done_callback(lambda t, e=e: self._task_done(e, t))
+                self.tasks.append((e, task))
+
+    def _thread_main(self, e: Entry) -> None:
+        try:
+            e.part.update()
+        except Exception as exc:
+            try:
+                self.loop.call_soon_threadsafe(self._background_failed, e, exc)
+            except RuntimeError:
+                logger.error("part %r background update() failed after the drive ended: %r", e.name, exc)
+
+    def _task_done(self, e: Entry, task: asyncio.Task[Any]) -> None:
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            self._background_failed(e, exc)
+
+    def _background_failed(self, e: Entry, exc: BaseException) -> None:
+        e.errors += 1
+        if e.on_error == "continue" or not self.on:
+            logger.error("part %r background update() failed: %r", e.name, exc)
+            return
+        err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
+        err.__cause__ = exc
+        if self.background_error is None:
+            self.background_error = err
+        logger.error("%s; stopping the vehicle", err)
+        self.stop_reason = "error"
+        self.request_stop("error")
+
+    # ------------------------------------------------------------------------------------------ ticks
+    async def tick_loop(
+        self,
+        rate_hz: float,
+        max_loop_count: int | None,
+        duration: float | None,
+        verbose: bool,
+        report_every: int,
+    ) -> None:
+        """Tick until a limit, a stop, an error or cancellation; counters are kept on ``self`` throughout."""
+        loop = self.loop
+        clock = self.clock
+        now = clock.now
+        period = 1.0 / rate_hz
+        entries = self.entries
+        d = self.mem.d
+        origins = self.mem.origins
+        dormant = self.mem.dormant
+        profiler = self.profiler
+        lateness_rec = profiler.lateness.record
+        overrun_rec = profiler.overrun.record
+        tick_rec = profiler.tick.record
+        block_report_s = self.block_report_s
+        jitter_log = LogThrottle(1.0)
+        self.task = asyncio.current_task()
+        t0 = now()
+        self.first_start = self.last_start = self.last_end = t0
+        end_at = None if duration is None else t0 + duration
+        k = 0
+        while not self.stop_requested:
+            if max_loop_count is not None and self.loops >= max_loop_count:
+                self.stop_reason = self.stop_reason or "max_loop_count"
+                break
+            deadline = t0 + k / rate_hz
+            if end_at is not None and deadline >= end_at:
+                self.stop_reason = self.stop_reason or "duration"
+                break
+            if now() < deadline:
+                self._wake = wake = loop.create_future()
+                if self.stop_requested:  # stop() raced with the new future
+                    break
+                await clock.sleep_until(deadline, wake)
+                if self.stop_requested:
+                    break
+            start = now()
+            if self.loops == 0:
+                self.first_start = start
+            self.last_start = start
+            lateness_rec(start - deadline)
+            if dormant:
+                dormant.clear()
+
+            for e in entries:
+                cond = e.run_condition
+                if cond is not None and not d.get(cond):
+                    if e.outputs:
+                        dormant.update(e.outputs)
+                    continue
+                self.current = e
+                self.part_started = t = now()
+                try:
+                    args = e.args()
+                    r = e.call(*args)
+                    if e.awaits:
+                        self._awaiting = r
+                        try:
+                            r = await r
+                        finally:
+                            self._awaiting = None
+                    t_end = now()
+                    if r is not None and e.store is not None:
+                        e.store(r, args, t_end)
+                except asyncio.CancelledError:
+                    if not self._grace_cancel:
+                        raise
+                    # cancelled by the stop grace, not by our caller: the part failed, the stop goes on
+                    self._grace_cancel = False
+                    if self.task is not None:
+                        self.task.uncancel()
+                    t_end = now()
+                    e.errors += 1
+                except Exception as exc:
+                    t_end = now()
+                    self._part_failed(e, self.loops, exc, t_end)
+                except PartInterrupted as exc:  # a stop request's grace ran out inside this sync part
+                    t_end = now()
+                    e.errors += 1
+                    logger.error("%s", exc)
+                e.series.record(t_end - t)
+                lat = e.latency
+                if lat is not None:
+                    o = origins.get(e.inputs[0]) if e.inputs and e.inputs[0] is not None else None
+                    if o is not None:
+                        lat(t_end - o)
+                if t_end - t > block_report_s and e.is_sync_inline:
+                    self._report_block(e, t_end - t, t_end)
+            self.current = None
+            self.part_started = math.inf
+
+            self.last_end = end = now()
+            self.loops += 1
+            dur = end - start
+            over = dur - period
+            if over > _TIME_EPS:
+                self.overruns += 1
+                overrun_rec(over)
+                if verbose and jitter_log.allow("jitter", end):
+                    held = jitter_log.take_suppressed("jitter")
+                    more = f" ({held} more since the last warning)" if held else ""
+                    logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
+            else:
+                overrun_rec(0.0)
+            tick_rec(dur)
+            if verbose and report_every and self.loops % report_every == 0:
+                logger.info("%s", profiler.table())
+            k += 1
+            # more than a period behind: skip the missed deadlines instead of bursting to catch up
+            # (float noise of a few ulps is neither "behind" nor "not yet passed")
+            if end - (t0 + k / rate_hz) > period + _TIME_EPS:
+                behind_k = math.floor((end - t0) * rate_hz + _TICK_EPS)
+                self.skipped += behind_k - k
+                k = behind_k
+        self.stop_reason = self.stop_reason or "stop()"
+
+    def _part_failed(self, e: Entry, tick: int, exc: Exception, now: float) -> None:
+        e.errors += 1
+        err = PartError(e.name, tick, f"{type(exc).__name__}: {exc}")
+        if e.on_error == "stop":
+            self.stop_reason = "error"
+            raise err from exc
+        if self._errlog.allow(e.name, now):
+            held = self._errlog.take_suppressed(e.name)
+            more = f" ({held} more errors since the last report)" if held else ""
+            logger.error("%s; continuing (on_error='continue')%s", err, more, exc_info=exc)
+
+    def _report_block(self, e: Entry, blocked: float, now: float) -> None:
+        """A sync part held the loop thread past the failsafe window: name it (the watchdog covered the car)."""
+        if self.longest_block is None or blocked > self.longest_block[0]:
+            self.longest_block = (blocked, e.name)
+        if self._blocklog.allow(e.name, now):
+            held = self._blocklog.take_suppressed(e.name)
+            more = f" ({held} more since the last report)" if held else ""
+            logger.warning(
+                "loop blocked %s ms by part %r (a sync run() on the loop thread; add it with executor=True if it "
+                "can block)%s",
+                f"{blocked * 1e3:,.0f}",
+                e.name,
+                more,
+            )
+
+    # ----------------------------------------------------------------------------------------- report
+    def fill_report(self) -> None:
+        r = self.report
+        r.loops = self.loops
+        r.overruns = self.overruns
+        r.skipped_deadlines = self.skipped
+        r.elapsed_s = (self.last_end - self.first_start) if self.loops else 0.0
+        span = self.last_start - self.first_start
+        r.achieved_hz = (self.loops - 1) / span if self.loops > 1 and span > 0 else 0.0
+        stats = self.profiler.as_dict()
+        r.parts = stats["parts"]
+        r.lateness_ms = stats["loop"]["lateness"] or {}
+        r.overrun_ms = stats["loop"]["overrun"] or {}
+        r.latency_ms = {name: s for name, s in stats["latency"].items() if s is not None}
+        r.part_errors = {e.name: e.errors for e in self.entries if e.errors}
+        if self.watchdog is not None:
+            r.watchdog_events = self.watchdog.events
+        if self.longest_block is not None:
+            r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
+        r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
+
+
+def latency_recorder(profiler: Profiler, name: str) -> Callable[[float], None]:
+    """The function an actuator (or the loop, for it) calls with each sensing-to-actuation latency."""
+    return profiler.latency_for(name).record

@@ -1,0 +1,390 @@
+"""How one part is called each tick, decided once when it is added (``Vehicle.add``).
+
+Everything a tick needs about a part is worked out here, so the tick itself only walks a list of prepared
+:class:`Entry` objects: no per-tick ``hasattr``/``isinstance``. That includes where the values it returns get
+their *origin* (the time of the sensing behind them), the provenance rule:
+
+* a part that states its own origin (``output_origin()``: a camera, a sensor poller, a controller, a network
+  receiver) gives its outputs that origin;
+* a part without inputs is a source: its outputs are sensed when it returns;
+* any other part's outputs inherit the **oldest** origin among its inputs, except that
+
+  - an output that *is* one of its inputs (the same object, not an equal one: a selector such as
+    ``DriveMode`` passing the user's command through) inherits that input's origin;
+  - a channel never written, and a channel whose producing part was skipped by its ``run_condition`` on the
+    current tick, does not count.
+
+So a selector neither hides a dead pilot behind a fresh gamepad (in ``local`` mode the pilot's command is
+a new object made from the pilot's old data: the pilot's age) nor makes a driver's fresh command look stale
+(in ``user`` mode the user's value is passed through; the skipped pilot does not count). The cost is one dict
+read per input and one identity test per (input, output) pair.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import inspect
+import logging
+import math
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
+
+from .errors import OutputCountError, PartSpecError, PartTimeoutError
+from .memory import Memory
+
+__all__ = ["AGE_SUFFIX", "Entry", "OnError", "build_entry"]
+
+logger = logging.getLogger("asyncdonkey.loop")
+
+OnError = Literal["stop", "continue"]
+AGE_SUFFIX = "@age"
+_INF = math.inf
+
+#: Classes whose ``shutdown()`` puts an actuator in its safe state, recognised so that Donkeycar's own
+#: actuator parts, used unchanged, are shut down in the first (safe-state) phase like ours.
+_DONKEYCAR_ACTUATOR_MODULES = ("donkeycar.parts.actuator",)
+
+
+class Entry:
+    """One part as the tick sees it. Everything except the per-run fields is fixed at ``add()``."""
+
+    __slots__ = (
+        "actuator",
+        "args",
+        "awaits",
+        "call",
+        "errors",
+        "executor",
+        "inputs",
+        "is_sync_inline",
+        "latency",
+        "name",
+        "on_error",
+        "outputs",
+        "part",
+        "run_condition",
+        "series",
+        "shutdown_fn",
+        "shutdown_takes_timeout",
+        "shutdown_timeout",
+        "store",
+        "threaded",
+        "timeout",
+    )
+
+    def __init__(self) -> None:
+        self.errors = 0
+        self.series: Any = None
+        #: set per run for an actuator the loop measures itself: records (run end - origin of its command)
+        self.latency: Callable[[float], None] | None = None
+
+
+def build_entry(
+    mem: Memory,
+    part: Any,
+    name: str,
+    inputs: Any,
+    outputs: Any,
+    threaded: Any,
+    run_condition: Any,
+    executor: Any,
+    on_error: Any,
+    shutdown_timeout: Any,
+    timeout: Any,
+    actuator: Any,
+    offload: Callable[[Callable[..., Any]], Callable[..., Any]],
+) -> Entry:
+    """Validate one ``Vehicle.add`` call and prepare its :class:`Entry`; errors name the part and argument."""
+    where = f"Vehicle.add({name})"
+    ins = _channel_list(inputs, "inputs", where, none_ok=True)
+    outs = _channel_list(outputs, "outputs", where)
+    for o in outs:
+        if o.endswith(AGE_SUFFIX):
+            raise PartSpecError(f"{where}: output {o!r} ends in {AGE_SUFFIX!r}, which is for inputs only")
+    if type(threaded) is not bool:
+        raise PartSpecError(f"{where}: threaded must be True or False, got {threaded!r}")
+    if type(executor) is not bool:
+        raise PartSpecError(f"{where}: executor must be True or False, got {executor!r}")
+    if run_condition is not None and (not isinstance(run_condition, str) or not run_condition):
+        raise PartSpecError(f"{where}: run_condition must be a channel name (str), got {run_condition!r}")
+    if on_error not in ("stop", "continue"):
+        raise PartSpecError(f"{where}: on_error must be 'stop' or 'continue', got {on_error!r}")
+    if not _positive_finite(shutdown_timeout):
+        raise PartSpecError(f"{where}: shutdown_timeout must be a positive number of seconds, got {shutdown_timeout!r}")
+    if timeout is not None and not _positive_finite(timeout):
+        raise PartSpecError(f"{where}: timeout must be a positive number of seconds or None, got {timeout!r}")
+    if actuator is not None and type(actuator) is not bool:
+        raise PartSpecError(f"{where}: actuator must be True, False or None (decide from the part), got {actuator!r}")
+
+    update = getattr(part, "update", None)
+    async_update = inspect.iscoroutinefunction(update)
+    if threaded:
+        if update is None or not callable(update):
+            raise PartSpecError(f"{where}: threaded=True needs an update() method, {name} has none")
+        fn = getattr(part, "run_threaded", None)
+        method = "run_threaded"
+        if fn is None and async_update:
+            fn, method = getattr(part, "run", None), "run"
+        if fn is None or not callable(fn):
+            raise PartSpecError(f"{where}: threaded=True needs a run_threaded() method, {name} has none")
+    else:
+        fn = getattr(part, "run", None)
+        method = "run"
+        if fn is None or not callable(fn):
+            raise PartSpecError(
+                f"{where}: a part needs a run() method (or threaded=True with update()"
+                f" and run_threaded()); {name} has none"
+            )
+    is_coro = inspect.iscoroutinefunction(fn)
+    if executor and is_coro:
+        raise PartSpecError(f"{where}: executor=True is for a sync {method}(); {name}.{method} is async")
+    awaits = is_coro or executor
+    if timeout is not None and not awaits:
+        raise PartSpecError(
+            f"{where}: timeout applies to awaited parts (async {method}() or executor=True); a sync {method}() "
+            f"running on the loop thread cannot be interrupted. Add it with executor=True to bound it"
+        )
+    _check_arity(fn, len(ins), where, method)
+
+    e = Entry()
+    e.part = part
+    e.name = name
+    e.inputs = ins
+    e.outputs = outs
+    e.run_condition = run_condition
+    e.on_error = on_error
+    e.shutdown_timeout = float(shutdown_timeout)
+    e.timeout = None if timeout is None else float(timeout)
+    e.threaded = "thread" if threaded and not async_update else ("task" if async_update else None)
+    e.executor = executor
+    e.awaits = awaits
+    e.is_sync_inline = not awaits
+    call = offload(fn) if executor else fn
+    e.call = _with_timeout(call, e.timeout, name) if e.timeout is not None else call
+    e.args = _arg_getter(mem, ins)
+    origin_fn = getattr(part, "output_origin", None)
+    e.store = _storer(mem, name, ins, outs, origin_fn if callable(origin_fn) else None)
+    shutdown = getattr(part, "shutdown", None)
+    e.shutdown_fn = shutdown if callable(shutdown) else None
+    e.shutdown_takes_timeout = e.shutdown_fn is not None and _accepts_keyword(e.shutdown_fn, "timeout")
+    if actuator is None:
+        actuator = callable(getattr(part, "safe_state_sync", None)) or type(part).__module__.startswith(
+            _DONKEYCAR_ACTUATOR_MODULES
+        )
+    e.actuator = actuator
+    return e
+
+
+# ------------------------------------------------------------------------------------------------ inputs
+def _arg_getter(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[], Sequence[Any]]:
+    d = mem.d
+    if not ins:
+        empty: tuple[Any, ...] = ()
+        return lambda: empty
+    if not any(i is None or i.endswith(AGE_SUFFIX) for i in ins):
+        dget = d.get
+        if len(ins) == 1:
+            (k,) = ins
+            return lambda: (dget(k),)
+        return lambda: list(map(dget, ins))
+    origins = mem.origins
+    plan = tuple(
+        (None, False) if i is None else (i[: -len(AGE_SUFFIX)], True) if i.endswith(AGE_SUFFIX) else (i, False)
+        for i in ins
+    )
+
+    def get_with_ages() -> list[Any]:
+        now = mem._now()
+        return [None if k is None else (now - origins.get(k, now - _INF)) if is_age else d.get(k) for k, is_age in plan]
+
+    return get_with_ages
+
+
+# ----------------------------------------------------------------------------------------------- outputs
+def _storer(
+    mem: Memory,
+    name: str,
+    ins: tuple[str | None, ...],
+    outs: tuple[str, ...],
+    stated: Callable[[], float | None] | None,
+) -> Callable[[Any, Sequence[Any], float], None] | None:
+    """``store(result, args, now)``: write the outputs with their write time and origin (module docstring)."""
+    if not outs:
+        return None
+    d, stamps, origins, dormant = mem.d, mem.stamps, mem.origins, mem.dormant
+    oget = origins.get
+    # inputs whose value may be passed through as an output: (argument index, channel)
+    passthrough = tuple((i, k) for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
+    sources = tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
+
+    def inherited(now: float) -> float:
+        o = _INF
+        for k in sources:
+            t = oget(k)
+            if t is not None and t < o and k not in dormant:
+                o = t
+        return now if o == _INF else o
+
+    def passed_through(value: Any, args: Sequence[Any]) -> float | None:
+        o = None
+        if value is not None:
+            for i, k in passthrough:
+                if args[i] is value:
+                    t = oget(k)
+                    if t is not None and (o is None or t < o):
+                        o = t
+        return o
+
+    n = len(outs)
+    warned = False
+
+    def unpack(values: Any) -> Any:
+        nonlocal warned
+        try:
+            count = len(values)
+        except TypeError:
+            raise OutputCountError(
+                f"returned {type(values).__name__} for {n} outputs {list(outs)}; expected a tuple or list of {n} values"
+            ) from None
+        if count < n:
+            raise OutputCountError(f"returned {count} values for {n} outputs {list(outs)}")
+        if count > n and not warned:
+            # Donkeycar stores the first N and ignores the rest; parts written for it rely on that
+            warned = True
+            logger.warning(
+                "part %r returned %d values for its %d outputs %s: storing the first %d, ignoring the rest "
+                "(warned once)",
+                name,
+                count,
+                n,
+                list(outs),
+                n,
+            )
+        return values
+
+    if stated is not None or not sources:
+        # sources and parts that state their origin: one origin for every output
+        def origin_of(now: float) -> float:
+            if stated is not None:
+                o = stated()
+                if o is not None:
+                    return o
+            return inherited(now) if sources else now
+
+        if n == 1:
+            (k1,) = outs
+
+            def store_stated_one(value: Any, args: Sequence[Any], now: float) -> None:
+                d[k1] = value
+                stamps[k1] = now
+                origins[k1] = origin_of(now)
+
+            return store_stated_one
+
+        def store_stated_many(values: Any, args: Sequence[Any], now: float) -> None:
+            values = unpack(values)
+            o = origin_of(now)
+            for k, v in zip(outs, values, strict=False):
+                d[k] = v
+                stamps[k] = now
+                origins[k] = o
+
+        return store_stated_many
+
+    if n == 1:
+        (k1,) = outs
+
+        def store_one(value: Any, args: Sequence[Any], now: float) -> None:
+            o = passed_through(value, args)
+            d[k1] = value
+            stamps[k1] = now
+            origins[k1] = inherited(now) if o is None else o
+
+        return store_one
+
+    def store_many(values: Any, args: Sequence[Any], now: float) -> None:
+        values = unpack(values)
+        common = None
+        for k, v in zip(outs, values, strict=False):
+            o = passed_through(v, args)
+            if o is None:
+                if common is None:
+                    common = inherited(now)
+                o = common
+            d[k] = v
+            stamps[k] = now
+            origins[k] = o
+
+    return store_many
+
+
+# --------------------------------------------------------------------------------------------- helpers
+def _with_timeout(call: Callable[..., Any], timeout: float, name: str) -> Callable[..., Any]:
+    """Wrap an awaited call so that it is cancelled after ``timeout`` seconds (a :class:`PartTimeoutError`)."""
+
+    async def bounded(*args: Any) -> Any:
+        try:
+            async with asyncio.timeout(timeout):
+                return await call(*args)
+        except TimeoutError:
+            raise PartTimeoutError(f"did not return within its timeout of {timeout:g} s (cancelled)") from None
+
+    return bounded
+
+
+def make_offload(get_executor: Callable[[], concurrent.futures.Executor]) -> Callable[..., Any]:
+    """``offload(fn)`` → a function returning the future of ``fn(*args)`` run in the vehicle's worker pool."""
+
+    def offload(fn: Callable[..., Any]) -> Callable[..., Any]:
+        def offloaded(*args: Any) -> asyncio.Future[Any]:
+            return asyncio.get_running_loop().run_in_executor(get_executor(), fn, *args)
+
+        return offloaded
+
+    return offload
+
+
+def _positive_finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+def _channel_list(value: Any, arg: str, where: str, none_ok: bool = False) -> tuple[Any, ...]:
+    """The channel names of ``inputs``/``outputs``; ``None`` is allowed as an input (it is always ``None``,
+    as in Donkeycar, whose templates pass ``inputs=["throttle", "steering", None]``)."""
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        raise PartSpecError(
+            f"{where}: {arg} must be a list of channel names, got the string {value!r}; did you mean [{value!r}]?"
+        )
+    if not isinstance(value, list | tuple):
+        raise PartSpecError(f"{where}: {arg} must be a list or tuple of channel names, got {type(value).__name__}")
+    for i, v in enumerate(value):
+        if v is None and none_ok:
+            continue
+        if not isinstance(v, str) or not v:
+            raise PartSpecError(f"{where}: {arg}[{i}] must be a non-empty channel name (str), got {v!r}")
+    return tuple(value)
+
+
+def _check_arity(fn: Callable[..., Any], n: int, where: str, method: str) -> None:
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return
+    try:
+        sig.bind(*([None] * n))
+    except TypeError as exc:
+        raise PartSpecError(f"{where}: {method}() cannot take the {n} input(s) given: {exc}") from None
+
+
+def _accepts_keyword(fn: Callable[..., Any], name: str) -> bool:
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    p = params.get(name)
+    if p is not None and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+        return True
+    return any(q.kind is q.VAR_KEYWORD for q in params.values())

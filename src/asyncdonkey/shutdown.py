@@ -1,0 +1,154 @@
+"""Ending a drive: safe state first, then everything else, none able to hold the process hostage.
+
+Two phases, under one deadline:
+
+1. **Safe state.** Every actuator (a part with ``safe_state_sync``, one added with ``actuator=True``, or one of
+   Donkeycar's own actuator parts) is shut down at once and concurrently, before any other part: a camera
+   whose ``shutdown()`` hangs must not delay the throttle's neutral by its timeout.
+2. **The rest**, concurrently, each with its own ``shutdown_timeout``. A part whose ``shutdown`` takes a
+   ``timeout`` keyword gets it (the tub writer drains for up to that long). Blocking shutdowns run on daemon
+   threads, so one that hangs is logged and abandoned instead of keeping the process alive after the report.
+
+Then background tasks are cancelled and ``update()`` threads joined, each bounded the same way.
+
+Cancellation during shutdown is remembered, not swallowed: the safe-state phase still completes (it is bounded),
+the rest is abandoned, and the caller re-raises ``CancelledError`` so an enclosing ``asyncio.timeout()`` works.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any, TypeVar
+
+if TYPE_CHECKING:
+    from .drive import Drive
+    from .plan import Entry
+
+__all__ = ["in_daemon_thread", "shutdown_drive"]
+
+logger = logging.getLogger("asyncdonkey.loop")
+T = TypeVar("T")
+
+#: extra time allowed to a part that bounds its own shutdown with the timeout we pass it
+_SELF_BOUNDED_MARGIN_S = 0.5
+
+
+def in_daemon_thread(
+    loop: asyncio.AbstractEventLoop, fn: Callable[..., T], *args: Any, name: str = "asyncdonkey-shutdown", **kwargs: Any
+) -> asyncio.Future[T]:
+    """Run ``fn`` on a new daemon thread; the returned future resolves on ``loop`` with its result.
+
+    Unlike an executor thread, a daemon thread that never returns does not keep the interpreter alive at exit.
+    On the virtual clock the thread holds virtual time while it runs, as executor work does.
+    """
+    fut: asyncio.Future[T] = loop.create_future()
+
+    def settle(ok: bool, value: Any) -> None:
+        if fut.done():
+            return
+        if ok:
+            fut.set_result(value)
+        else:
+            fut.set_exception(value)
+
+    def target() -> None:
+        try:
+            result = fn(*args, **kwargs)
+        except BaseException as exc:
+            outcome: tuple[bool, Any] = (False, exc)
+        else:
+            outcome = (True, result)
+        try:
+            loop.call_soon_threadsafe(settle, *outcome)
+        except RuntimeError:  # the loop is closed: nobody waits any more
+            pass
+
+    thread = threading.Thread(target=target, name=name, daemon=True)
+    hold = getattr(loop, "hold_time_while", None)
+    if hold is not None:
+        release = hold(thread.is_alive, name)
+        fut.add_done_callback(lambda _f: release())
+    thread.start()
+    return fut
+
+
+async def _shutdown_one(e: Entry, loop: asyncio.AbstractEventLoop) -> None:
+    fn = e.shutdown_fn
+    if fn is None:
+        return
+    kwargs = {"timeout": e.shutdown_timeout} if e.shutdown_takes_timeout else {}
+    limit = e.shutdown_timeout + (_SELF_BOUNDED_MARGIN_S if kwargs else 0.0)
+    try:
+        if inspect.iscoroutinefunction(fn):
+            await asyncio.wait_for(fn(**kwargs), limit)
+        else:
+            await asyncio.wait_for(in_daemon_thread(loop, fn, name=f"shutdown:{e.name}", **kwargs), limit)
+    except TimeoutError:
+        logger.error("part %r: shutdown() did not finish within %.1f s; abandoned", e.name, limit)
+    except asyncio.CancelledError:
+        logger.error("part %r: shutdown() was cancelled", e.name)
+    except Exception as exc:
+        logger.error("part %r: shutdown() raised %r", e.name, exc, exc_info=exc)
+
+
+async def _phase(entries: Iterable[Entry], loop: asyncio.AbstractEventLoop, *, finish_on_cancel: bool) -> bool:
+    """Shut ``entries`` down concurrently; returns True if the caller's task was cancelled meanwhile."""
+    tasks = [loop.create_task(_shutdown_one(e, loop), name=f"shutdown:{e.name}") for e in entries]
+    if not tasks:
+        return False
+    cancelled = False
+    pending: set[asyncio.Task[None]] = set(tasks)
+    while pending:
+        try:
+            _done, pending = await asyncio.wait(pending)
+        except asyncio.CancelledError:
+            cancelled = True
+            if not finish_on_cancel:
+                for t in pending:
+                    t.cancel()
+                break
+    return cancelled
+
+
+async def shutdown_drive(drive: Drive) -> bool:
+    """Shut every part of ``drive`` down exactly once (module docstring). Returns True if cancelled meanwhile."""
+    loop = drive.loop
+    entries = [e for e in drive.entries if e.shutdown_fn is not None]
+    cancelled = await _phase([e for e in entries if e.actuator], loop, finish_on_cancel=True)
+    if drive.watchdog is not None:
+        drive.watchdog.stop()
+    if not cancelled:
+        cancelled = await _phase([e for e in entries if not e.actuator], loop, finish_on_cancel=False)
+    for _, task in drive.tasks:
+        task.cancel()
+    if not cancelled:
+        for e, task in drive.tasks:
+            try:
+                await asyncio.wait_for(task, e.shutdown_timeout)
+            except asyncio.CancelledError:
+                if not task.cancelled():  # we, not the task, were cancelled
+                    cancelled = True
+                    break
+            except Exception:
+                pass  # already reported by the task's done callback
+        for e, t in drive.threads:
+            if cancelled:
+                break
+            try:
+                await in_daemon_thread(loop, t.join, e.shutdown_timeout, name=f"join:{e.name}")
+            except asyncio.CancelledError:
+                cancelled = True
+            if t.is_alive():
+                logger.error(
+                    "part %r: update() thread still running %.1f s after shutdown(); abandoned (daemon thread)",
+                    e.name,
+                    e.shutdown_timeout,
+                )
+    if drive.executor is not None:
+        drive.executor.shutdown(wait=False, cancel_futures=True)
+        drive.executor = None
+    return cancelled

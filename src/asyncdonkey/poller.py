@@ -52,6 +52,7 @@ class Poller(Generic[T]):
         self.errors = 0
         self.skipped = 0
         self.last_error: BaseException | None = None
+        self._origin: float | None = None
         self._running = False
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._log = LogThrottle(1.0)
@@ -61,7 +62,15 @@ class Poller(Generic[T]):
         return self.latest.sample
 
     def run(self) -> T | None:
-        return self.latest.value
+        s = self.latest.sample
+        if s is None:
+            return None
+        self._origin = s.timestamp
+        return s.value
+
+    def output_origin(self) -> float | None:
+        """When the value ``run()`` returned was read: re-publishing it on later ticks does not make it young."""
+        return self._origin
 
     async def update(self) -> None:
         loop = asyncio.get_running_loop()

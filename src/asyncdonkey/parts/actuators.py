@@ -44,12 +44,13 @@ import inspect
 import logging
 import math
 import numbers
+import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 from ..clock import Clock, get_clock
 from ..hw.i2c import I2CBusRegistry
-from ..hw.pca9685 import open_pwm_channel
+from ..hw.pca9685 import PWMChannel, open_pwm_channel
 from ..hw.pinspec import PCA9685Pin
 from ..ratelimit import LogThrottle
 
@@ -89,11 +90,11 @@ class _BlockingController:
         self.name = type(controller).__name__
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
 
-    async def set_pulse(self, pulse: int) -> None:
+    async def call(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"pwm:{self.name}")
         loop = asyncio.get_running_loop()
-        await loop.run_in_executor(self._executor, self.controller.set_pulse, pulse)
+        return await loop.run_in_executor(self._executor, fn, *args)
 
     def close(self) -> None:
         if self._executor is not None:
@@ -125,14 +126,37 @@ class _PWMPart:
         if not (_is_number(retry_s) and retry_s > 0):
             raise ValueError(f"{kind}: retry_s must be a positive number, got {retry_s!r}")
         self._closer: Callable[[], None] | None = None
-        setter: Callable[[int], Awaitable[None]]
+        #: a blocking write in Donkeycar pulse units, callable from any thread (the watchdog's path)
+        self._raw_write: Callable[[int], None] | None = None
+        #: runs a sync function off the loop thread where the output's transfers run
+        self._run_off_loop: Callable[..., Awaitable[Any]] | None = None
+        self._async_write: Callable[[int], Awaitable[None]] | None = None
+        scale, inverted = float(pwm_scale), bool(pwm_inverted)
         if isinstance(controller, str | PCA9685Pin):
-            channel = open_pwm_channel(controller, frequency_hz, buses=buses)
-            setter, where = channel.set_pulse, channel.name
-            convert = True
+            controller = open_pwm_channel(controller, frequency_hz, buses=buses)
+        if isinstance(controller, PWMChannel):
+            channel = controller
+            where = channel.name
+
+            def raw(pulse: int) -> None:
+                channel.set_pulse_sync(pulse_to_ticks(pulse, scale, inverted))
+
+            self._raw_write, self._run_off_loop = raw, channel.chip.bus.call
         elif inspect.iscoroutinefunction(getattr(controller, "set_pulse", None)):
-            setter, where = controller.set_pulse, getattr(controller, "name", repr(controller))
-            convert = True
+            setter = controller.set_pulse
+            where = getattr(controller, "name", repr(controller))
+
+            def write(pulse: int) -> Awaitable[None]:
+                return setter(pulse_to_ticks(pulse, scale, inverted))
+
+            self._async_write = write
+            sync = getattr(controller, "set_pulse_sync", None)
+            if callable(sync):
+
+                def raw_sync(pulse: int) -> None:
+                    sync(pulse_to_ticks(pulse, scale, inverted))
+
+                self._raw_write = raw_sync
         elif callable(getattr(controller, "set_pulse", None)):
             if pwm_scale != 1.0 or pwm_inverted:
                 raise ValueError(
@@ -140,22 +164,20 @@ class _PWMPart:
                     f"controller {type(controller).__name__} instead"
                 )
             blocking = _BlockingController(controller)
-            setter, where, self._closer = blocking.set_pulse, blocking.name, blocking.close
-            convert = False
+            where, self._closer = blocking.name, blocking.close
+            self._raw_write, self._run_off_loop = controller.set_pulse, blocking.call
         else:
             raise TypeError(
                 f"{kind}: controller must be a PCA9685 pin spec like 'PCA9685.1:40.1', a PWMChannel, or an object "
                 f"with set_pulse(pulse); got {controller!r}"
             )
-        if convert:
-            scale, inverted = float(pwm_scale), bool(pwm_inverted)
-
-            def write(pulse: int) -> Awaitable[None]:
-                return setter(pulse_to_ticks(pulse, scale, inverted))
-
-            self._write_pulse: Callable[[int], Awaitable[None]] = write
-        else:
-            self._write_pulse = setter
+        # Writes from the writer (on the output's worker thread) and from the watchdog are serialised by
+        # _wlock, and once the watchdog has tripped no command but the neutral one is written until a fresh
+        # command un-trips it: a driving pulse queued before a stall can never land after the safe state.
+        self._wlock = threading.Lock()
+        self._tripped = False
+        self._runtime: Any = None
+        self._pending_origin: float | None = None
         self.name = f"{kind} ({where})"
         self.neutral_pulse = int(neutral_pulse)
         self.retry_s = float(retry_s)
@@ -182,6 +204,58 @@ class _PWMPart:
         """The pulse to output now and when to look again (``inf``: only when woken)."""
         return self.pulse, math.inf
 
+    # ------------------------------------------------------------------------------ output writes
+    def _guarded_write(self, pulse: int) -> None:
+        """The blocking write, serialised with the watchdog; skips a driving pulse while tripped."""
+        raw = self._raw_write
+        assert raw is not None
+        with self._wlock:
+            if self._tripped and pulse != self.neutral_pulse:
+                return
+            raw(pulse)
+
+    async def _write_pulse(self, pulse: int) -> None:
+        if self._raw_write is not None and self._run_off_loop is not None:
+            await self._run_off_loop(self._guarded_write, pulse)
+        elif self._async_write is not None:
+            await self._async_write(pulse)
+        else:  # pragma: no cover - the constructor guarantees one path
+            raise RuntimeError(f"{self.name}: no way to write a pulse")
+
+    # ------------------------------------------------------------------------ the Actuator protocol
+    def safe_state_sync(self) -> None:
+        """Write the neutral pulse now, from any thread (the watchdog, a forced exit); latch until a fresh
+        command. Raises ``RuntimeError`` for an output with only an async path (nothing to call from a thread)."""
+        raw = self._raw_write
+        if raw is None:
+            raise RuntimeError(f"{self.name}: the output has no synchronous write, so only the loop can stop it")
+        with self._wlock:
+            self._tripped = True
+            raw(self.neutral_pulse)
+        self.written_pulse = self.neutral_pulse
+        self.pulse = self.neutral_pulse
+
+    def command_deadline(self) -> float:
+        """When the current command goes stale on the runtime clock (``inf``: no failsafe)."""
+        return math.inf
+
+    def attach(self, runtime: Any) -> None:
+        """Called by the drive at its start (its latency recorder and watchdog) and with ``None`` at its end."""
+        self._runtime = runtime
+        self._pending_origin = None
+
+    def _command_applied(self, origin: float | None, now: float) -> None:
+        """A command sensed at ``origin`` became the target: record its latency now if the output already
+        shows it, else when the writer has written it."""
+        rt = self._runtime
+        if rt is None or origin is None:
+            return
+        if self.pulse == self.written_pulse:
+            rt.record_latency(now - origin)
+            self._pending_origin = None
+        else:
+            self._pending_origin = origin
+
     # ------------------------------------------------------------------------------ writer task
     async def _write(self, pulse: int, clock: Clock) -> bool:
         try:
@@ -205,6 +279,10 @@ class _PWMPart:
             return False
         self.written_pulse = pulse
         self.writes += 1
+        origin = self._pending_origin
+        if origin is not None and pulse == self.pulse and self._runtime is not None:
+            self._pending_origin = None
+            self._runtime.record_latency(clock.now() - origin)
         return True
 
     async def _before_driving(self, clock: Clock) -> None:
@@ -316,8 +394,9 @@ class PWMSteering(_PWMPart):
             **kwargs,
         )
 
-    def run(self, angle: float | None) -> None:
-        """Set the steering target (returns at once; the writer task does the I2C)."""
+    def run(self, angle: float | None, angle_age: float | None = None) -> None:
+        """Set the steering target (returns at once; the writer task does the I2C). ``angle_age`` (from an
+        ``"angle@age"`` input) lets the drive report the steering's sensing-to-actuation latency."""
         if angle is None:
             self._set_target(self.neutral_pulse)
             return
@@ -330,6 +409,12 @@ class PWMSteering(_PWMPart):
             return
         a = -1.0 if a < -1.0 else 1.0 if a > 1.0 else a
         self._set_target(donkeycar_map_range(a, -1, 1, self.left_pulse, self.right_pulse))
+        if angle_age is not None and self._runtime is not None and angle_age < math.inf:
+            now_fn = self._now
+            if now_fn is None:
+                now_fn = self._now = get_clock().now
+            now = now_fn()
+            self._command_applied(now - float(angle_age), now)
 
     run_threaded = run
 
@@ -429,27 +514,45 @@ class PWMThrottle(_PWMPart):
         return donkeycar_map_range(t, -1, 0, self.min_pulse, self.zero_pulse)
 
     def run(self, throttle: float | None, throttle_age: float | None = None) -> None:
-        """Set the throttle target; ``throttle_age`` (from a ``"...@age"`` input) enables the failsafe."""
+        """Set the throttle target; ``throttle_age`` (from a ``"...@age"`` input: the age of the sensing behind
+        the command) enables the failsafe and the sensing-to-actuation latency."""
         self.command_pulse = self.map_throttle(throttle)
         fs = self.failsafe_age_s
-        if throttle_age is None or fs is None:
+        origin = None
+        if throttle_age is None:
             stale_at = math.inf
             stale = False
+            now = 0.0
         else:
             now_fn = self._now
             if now_fn is None:
                 now_fn = self._now = get_clock().now
             now = now_fn()
             age = float(throttle_age)
-            stale_at = now - age + fs if age == age else -math.inf
+            if age == age and age != math.inf:
+                origin = now - age
+            stale_at = math.inf if fs is None else -math.inf if origin is None else origin + fs
             stale = now >= stale_at
-            self._failsafe(stale, now, age)
+            if fs is not None:
+                self._failsafe(stale, now, age)
         self._stale_at = stale_at
-        self._set_target(self.neutral_pulse if stale or not self.armed else self.command_pulse)
+        if self._tripped and not stale:
+            self._tripped = False  # a fresh command after a watchdog event: drive again
+        driving = not stale and self.armed
+        self._set_target(self.command_pulse if driving else self.neutral_pulse)
         if stale_at < self._writer_deadline:
             w = self._wake
             if w is not None and not w.done():
                 w.set_result(None)
+        rt = self._runtime
+        if rt is not None:
+            rt.deadline_changed(stale_at)
+            if driving:
+                self._command_applied(origin, now)
+
+    def command_deadline(self) -> float:
+        """When the current command goes stale (origin + ``failsafe_age_s``), on the runtime clock."""
+        return self._stale_at if self.armed else math.inf
 
     run_threaded = run
 

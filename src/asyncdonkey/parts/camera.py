@@ -101,6 +101,7 @@ class CvCamera:
             raise
         self.outputs: list[str] = ["cam/image_array", "cam/timestamp"] if timestamp else ["cam/image_array"]
         self._timestamp = bool(timestamp)
+        self._origin = self.sample.timestamp
 
     def _first_frame(self, timeout: float) -> None:
         """Read until the first frame (a live camera may give a few empty reads while it starts)."""
@@ -150,7 +151,12 @@ class CvCamera:
         self._adopt_loop_clock()
         s = self.reader.latest.sample
         assert s is not None
+        self._origin = s.timestamp
         return (s.value, s.timestamp) if self._timestamp else s.value
+
+    def output_origin(self) -> float:
+        """The capture time of the frame ``run()`` returned: a frame re-served on later ticks keeps its age."""
+        return self._origin
 
     def update(self) -> None:
         """Donkeycar's threaded-part loop: grab until :meth:`shutdown`."""

@@ -39,6 +39,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..clock import get_clock
 from ..hw.joystick import JoystickEvent, JoystickReader
 from .control import DRIVE_MODES
 
@@ -125,6 +126,7 @@ class JoystickController:
         self.recording = False
         self.estop = False
         self.estop_events = 0
+        self._lost_at: float | None = None
 
     @property
     def connected(self) -> bool:
@@ -172,6 +174,17 @@ class JoystickController:
     def _on_disconnect(self) -> None:
         self.mode = self.mapping.modes[0]
         self.recording = False
+        if self._lost_at is None:
+            self._lost_at = get_clock().now()
+
+    def output_origin(self) -> float | None:
+        """While the device is connected the stick state is current (a held stick sends no events, yet the
+        driver's command is fresh): ``None``, i.e. now. Once unplugged, the time it was lost, so the commands
+        age and a stale-command failsafe stops the car."""
+        if self.reader.connected:
+            self._lost_at = None
+            return None
+        return self._lost_at
 
     # ------------------------------------------------------------------------------------------ outputs
     def _throttle_from_stick(self) -> float:

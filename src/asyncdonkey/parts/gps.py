@@ -107,6 +107,10 @@ class Gps:
     def run(self) -> Position:
         return self._position
 
+    def output_origin(self) -> float | None:
+        """When the sentence behind the position ``run()`` returned arrived (``None`` before a fix: now)."""
+        return self._position[4]
+
     async def shutdown(self) -> None:
         await self.port.close()
 

@@ -98,6 +98,7 @@ class IMU:
             outputs.append("imu/timestamp")
         self.outputs: list[str] = outputs
         self._pack = _packer(temperature, timestamp)
+        self._origin: float | None = None
 
     @property
     def sample(self) -> Sample[IMUSample] | None:
@@ -114,7 +115,14 @@ class IMU:
 
     def run(self) -> tuple[float, ...] | None:
         s = self.poller.latest.sample
-        return None if s is None else self._pack(s)
+        if s is None:
+            return None
+        self._origin = s.timestamp
+        return self._pack(s)
+
+    def output_origin(self) -> float | None:
+        """When the sample ``run()`` returned was read: its outputs are that old, however often re-published."""
+        return self._origin
 
     run_threaded = run
 

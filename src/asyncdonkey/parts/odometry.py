@@ -199,6 +199,10 @@ class Odometer:
             self._set_direction(throttle)
         return self._reading
 
+    def output_origin(self) -> float | None:
+        """When the encoder reading behind the outputs arrived (not the throttle input's age)."""
+        return self._reading[2]
+
     async def shutdown(self) -> None:
         await self.encoder.close()
 

@@ -162,8 +162,13 @@ class SimCar:
         self.frames.publish(self.sim.render(), t)
         self.frames_rendered += 1
 
+    def safe_state_sync(self) -> None:
+        """The simulated ESC's safe state: throttle 0 (the car rolls to a stop). Any thread."""
+        self.throttle = 0.0
+
     def shutdown(self) -> None:
         """Stop the simulation task after its current frame; the car coasts no further."""
+        self.throttle = 0.0
         self._running = False
 
     def __repr__(self) -> str:
@@ -180,6 +185,7 @@ class SimCamera:
 
     def __init__(self, car: SimCar) -> None:
         self.car = car
+        self._origin: float | None = None
 
     def run(self) -> np.ndarray:
         sample = self.car.frames.sample
@@ -190,7 +196,12 @@ class SimCamera:
             car._publish(now)
             sample = car.frames.sample
             assert sample is not None
+        self._origin = sample.timestamp
         return sample.value
+
+    def output_origin(self) -> float | None:
+        """The render time of the frame ``run()`` returned (the simulated capture)."""
+        return self._origin
 
     def age(self) -> float:
         """Seconds since the newest frame was taken, on the runtime clock (``inf`` before the first)."""

@@ -90,6 +90,8 @@ class Drive:
         self._errlog = LogThrottle(1.0)
         self._blocklog = LogThrottle(1.0)
         self.longest_block: tuple[float, str] | None = None
+        #: parts whose shutdown() or update() thread did not finish in time (left running as daemon threads)
+        self.abandoned: list[str] = []
         for e in entries:
             e.errors = 0
             e.series = profiler.series_for(e.name)
@@ -344,6 +346,7 @@ class Drive:
             r.watchdog_events = self.watchdog.events
         if self.longest_block is not None:
             r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
+        r.shutdown_abandoned = list(self.abandoned)
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
 
 

@@ -67,6 +67,8 @@ class DriveReport:
         watchdog_events: times the watchdog put an actuator in its safe state.
         longest_block_ms: ``(ms, part)`` of the longest time a sync part held the loop thread past
             ``block_report_s``, or ``None``.
+        shutdown_abandoned: parts whose ``shutdown()`` (or ``update()`` thread) outlived its timeout and
+            was left running on a daemon thread.
         stop_reason: ``"max_loop_count"``, ``"duration"``, ``"stop()"``, ``"cancelled"``, ``"error"`` or the
             name of the signal that stopped the car.
     """
@@ -84,6 +86,7 @@ class DriveReport:
     part_errors: dict[str, int] = field(default_factory=dict)
     watchdog_events: int = 0
     longest_block_ms: tuple[float, str] | None = None
+    shutdown_abandoned: list[str] = field(default_factory=list)
     stop_reason: str = ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -358,6 +361,8 @@ class Vehicle:
             rows.append(("part errors", ", ".join(f"{k}: {v}" for k, v in report.part_errors.items())))
         if report.watchdog_events:
             rows.append(("watchdog", f"{report.watchdog_events} safe-state events"))
+        if report.shutdown_abandoned:
+            rows.append(("shutdown abandoned", ", ".join(report.shutdown_abandoned)))
         if report.longest_block_ms is not None:
             ms, part = report.longest_block_ms
             rows.append(("longest loop block", f"{ms:,.0f} ms by part {part!r}"))

@@ -10,7 +10,8 @@ their *origin* (the time of the sensing behind them), the provenance rule:
 * any other part's outputs inherit the **oldest** origin among its inputs, except that
 
   - an output that *is* one of its inputs (the same object, not an equal one: a selector such as
-    ``DriveMode`` passing the user's command through) inherits that input's origin;
+    ``DriveMode`` passing the user's command through) inherits that input's origin (if several inputs hold
+    that object, a live one before a dormant one, then the oldest);
   - a channel never written, and a channel whose producing part was skipped by its ``run_condition`` on the
     current tick, does not count.
 
@@ -227,13 +228,19 @@ def _storer(
         return now if o == _INF else o
 
     def passed_through(value: Any, args: Sequence[Any]) -> float | None:
+        # the same object may sit in several inputs (a small constant both a driver and a skipped pilot
+        # published): a live input wins over a dormant one, then the oldest
         o = None
+        live = False
         if value is not None:
             for i, k in passthrough:
                 if args[i] is value:
                     t = oget(k)
-                    if t is not None and (o is None or t < o):
-                        o = t
+                    if t is None:
+                        continue
+                    k_live = k not in dormant
+                    if o is None or (k_live and not live) or (k_live == live and t < o):
+                        o, live = t, k_live
         return o
 
     n = len(outs)

@@ -76,7 +76,7 @@ def in_daemon_thread(
     return fut
 
 
-async def _shutdown_one(e: Entry, loop: asyncio.AbstractEventLoop) -> None:
+async def _shutdown_one(e: Entry, loop: asyncio.AbstractEventLoop, abandoned: list[str]) -> None:
     fn = e.shutdown_fn
     if fn is None:
         return
@@ -89,15 +89,18 @@ async def _shutdown_one(e: Entry, loop: asyncio.AbstractEventLoop) -> None:
             await asyncio.wait_for(in_daemon_thread(loop, fn, name=f"shutdown:{e.name}", **kwargs), limit)
     except TimeoutError:
         logger.error("part %r: shutdown() did not finish within %.1f s; abandoned", e.name, limit)
+        abandoned.append(e.name)
     except asyncio.CancelledError:
         logger.error("part %r: shutdown() was cancelled", e.name)
     except Exception as exc:
         logger.error("part %r: shutdown() raised %r", e.name, exc, exc_info=exc)
 
 
-async def _phase(entries: Iterable[Entry], loop: asyncio.AbstractEventLoop, *, finish_on_cancel: bool) -> bool:
+async def _phase(
+    entries: Iterable[Entry], loop: asyncio.AbstractEventLoop, abandoned: list[str], *, finish_on_cancel: bool
+) -> bool:
     """Shut ``entries`` down concurrently; returns True if the caller's task was cancelled meanwhile."""
-    tasks = [loop.create_task(_shutdown_one(e, loop), name=f"shutdown:{e.name}") for e in entries]
+    tasks = [loop.create_task(_shutdown_one(e, loop, abandoned), name=f"shutdown:{e.name}") for e in entries]
     if not tasks:
         return False
     cancelled = False
@@ -118,11 +121,12 @@ async def shutdown_drive(drive: Drive) -> bool:
     """Shut every part of ``drive`` down exactly once (module docstring). Returns True if cancelled meanwhile."""
     loop = drive.loop
     entries = [e for e in drive.entries if e.shutdown_fn is not None]
-    cancelled = await _phase([e for e in entries if e.actuator], loop, finish_on_cancel=True)
+    abandoned = drive.abandoned
+    cancelled = await _phase([e for e in entries if e.actuator], loop, abandoned, finish_on_cancel=True)
     if drive.watchdog is not None:
         drive.watchdog.stop()
     if not cancelled:
-        cancelled = await _phase([e for e in entries if not e.actuator], loop, finish_on_cancel=False)
+        cancelled = await _phase([e for e in entries if not e.actuator], loop, abandoned, finish_on_cancel=False)
     for _, task in drive.tasks:
         task.cancel()
     if not cancelled:
@@ -143,6 +147,7 @@ async def shutdown_drive(drive: Drive) -> bool:
             except asyncio.CancelledError:
                 cancelled = True
             if t.is_alive():
+                abandoned.append(e.name)
                 logger.error(
                     "part %r: update() thread still running %.1f s after shutdown(); abandoned (daemon thread)",
                     e.name,

@@ -1,0 +1,330 @@
+"""Data ages follow the data through parts: the origin rule, selectors, sources, and the failsafe on top.
+
+All on the virtual clock, so every age and every time to neutral is exact.
+"""
+
+import ast
+import asyncio
+import math
+from pathlib import Path
+
+import pytest
+from rig import HALF, NEUTRAL, Rig
+
+from asyncdonkey import Memory, Vehicle
+from asyncdonkey.parts.control import DriveMode, PilotCondition
+
+RATE = 20
+PERIOD = 1 / RATE
+
+
+class Record:
+    """Collects what a part was given each tick."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple] = []
+
+    def run(self, *args):
+        self.seen.append(args)
+
+
+class Seq:
+    """Returns the next item each tick (``None`` items write nothing)."""
+
+    def __init__(self, items) -> None:
+        self.items = list(items)
+        self.k = 0
+
+    def run(self):
+        item = self.items[self.k] if self.k < len(self.items) else self.items[-1]
+        self.k += 1
+        return item
+
+
+# ------------------------------------------------------------------------------------------ the rule
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_republishing_an_old_value_never_makes_it_young():
+    class Sensor:  # a source that states its origin: the sample was read at t=0 and never again
+        def run(self):
+            return 1.0
+
+        def output_origin(self):
+            return 0.0
+
+    class Scale:
+        def run(self, x):
+            return 2 * x
+
+    ages = Record()
+    v = Vehicle()
+    v.add(Sensor(), outputs=["raw"])
+    v.add(Scale(), inputs=["raw"], outputs=["scaled"])
+    v.add(ages, inputs=["raw@age", "scaled@age"])
+    await v.run(RATE, 5)
+    expected = [k * PERIOD for k in range(5)]
+    assert [a[0] for a in ages.seen] == pytest.approx(expected, abs=1e-12)
+    assert [a[1] for a in ages.seen] == pytest.approx(expected, abs=1e-12)
+    assert v.mem.written_at("scaled") == pytest.approx(4 * PERIOD)  # written just now, sensed long ago
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_outputs_inherit_the_oldest_input_and_sources_are_sensed_when_they_return():
+    class Combine:
+        def run(self, a, b):
+            return a + b
+
+    ages = Record()
+    v = Vehicle()
+    v.mem.set("old", 1.0, origin=-2.0)  # e.g. a value received over the network, sensed 2 s before start
+    v.add(Seq([1.0]), outputs=["new"])
+    v.add(Combine(), inputs=["old", "new"], outputs=["sum"])
+    v.add(ages, inputs=["new@age", "sum@age"])
+    await v.run(RATE, 3)
+    assert [a[0] for a in ages.seen] == [0.0, 0.0, 0.0]
+    # Memory was re-stamped at the start of the drive (its values were stamped on another clock), so "old"
+    # is as old as the drive: 0, 0.05, 0.10
+    assert [a[1] for a in ages.seen] == pytest.approx([0.0, 0.05, 0.10])
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_an_output_that_is_an_input_keeps_that_inputs_origin():
+    class Old:
+        def run(self):
+            return [1]  # a fresh list object each tick
+
+        def output_origin(self):
+            return 0.0
+
+    class Pick:
+        def __init__(self):
+            self.pass_through = True
+
+        def run(self, fresh, old):
+            return (fresh if self.pass_through else [fresh[0] + old[0]]), old
+
+    ages = Record()
+    v = Vehicle()
+    v.add(Seq([[7]]), outputs=["fresh"])
+    v.add(Old(), outputs=["old"])
+    v.add(Pick(), inputs=["fresh", "old"], outputs=["a", "b"])
+    v.add(ages, inputs=["a@age", "b@age"])
+    await v.run(RATE, 3)
+    t = [k * PERIOD for k in range(3)]
+    assert [x[0] for x in ages.seen] == [0.0, 0.0, 0.0]  # passed through: the fresh input's age
+    assert [x[1] for x in ages.seen] == pytest.approx(t)  # passed through: the old input's age
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_never_written_and_skipped_inputs_do_not_count():
+    class Mix:
+        def run(self, user, pilot, nothing):
+            return (user or 0.0) + (pilot or 0.0) + 0.0  # a new object: inherits
+
+    ages = Record()
+    v = Vehicle()
+    v.mem.set("pilot_on", False)
+    v.add(Seq([0.3]), outputs=["user"])
+    v.add(Seq([0.9]), outputs=["pilot"], run_condition="pilot_on")
+    v.add(Mix(), inputs=["user", "pilot", "nothing"], outputs=["cmd"])
+    v.add(ages, inputs=["cmd@age", "pilot@age"])
+    await v.run(RATE, 3)
+    assert [a[0] for a in ages.seen] == [0.0, 0.0, 0.0]
+    assert all(math.isinf(a[1]) for a in ages.seen)
+
+
+def test_memory_set_and_age_use_the_origin():
+    now = [10.0]
+    mem = Memory(lambda: now[0])
+    mem.set("x", 1, origin=9.5)
+    mem["y"] = 2
+    now[0] = 10.25
+    assert mem.origin("x") == 9.5 and mem.written_at("x") == 10.0
+    assert mem.age("x") == pytest.approx(0.75)
+    assert mem.age("y") == pytest.approx(0.25)
+    assert math.isinf(mem.age("never"))
+
+
+# ------------------------------------------------------------------------------- selectors (the trap)
+
+
+def _donkeycar_drive_mode():
+    """Donkeycar 5.x's template DriveMode, compiled from the installed template, used unchanged."""
+    import donkeycar
+
+    src = (Path(donkeycar.__file__).parent / "templates" / "complete.py").read_text()
+    tree = ast.parse(src)
+    node = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "DriveMode")
+    ns: dict = {}
+    exec(compile(ast.Module(body=[node], type_ignores=[]), "complete.py", "exec"), ns)
+    return ns["DriveMode"]
+
+
+def _make_drive_mode(kind: str):
+    if kind == "ours":
+        return DriveMode()
+    cls = _donkeycar_drive_mode()
+    try:
+        return cls()
+    except TypeError:  # 5.3 takes the config
+        import types
+
+        return cls(types.SimpleNamespace(AI_THROTTLE_MULT=1.0))
+
+
+class Mode:
+    """The driver's mode switch: a list of (first tick, mode)."""
+
+    def __init__(self, plan) -> None:
+        self.plan = plan
+        self.k = 0
+
+    def run(self):
+        mode = [m for start, m in self.plan if start <= self.k][-1]
+        self.k += 1
+        return mode
+
+
+class Pilot:
+    """Publishes 0.5 until ``silent_from`` (then returns None, or raises)."""
+
+    def __init__(self, silent_from: int = 10**9, how: str = "none") -> None:
+        self.silent_from = silent_from
+        self.how = how
+        self.calls = 0
+
+    def run(self, image):
+        self.calls += 1
+        if self.calls > self.silent_from:
+            if self.how == "raise":
+                raise RuntimeError("inference failed")
+            return None
+        return 0.0 + 0.0, 0.5 + 0.0
+
+
+def _car(rig: Rig, mode_plan, pilot: Pilot, drive_mode) -> tuple[Vehicle, object]:
+    v = Vehicle()
+    v.add(Seq([1]), outputs=["cam/image_array"])
+    v.add(Mode(mode_plan), outputs=["user/mode"])
+    v.add(Seq([(0.1, 0.5)]), outputs=["user/angle", "user/throttle"])  # the driver holds half throttle
+    v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
+    v.add(
+        pilot,
+        inputs=["cam/image_array"],
+        outputs=["pilot/angle", "pilot/throttle"],
+        run_condition="run_pilot",
+        on_error="continue",
+    )
+    v.add(
+        drive_mode,
+        inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
+        outputs=["angle", "throttle"],
+    )
+    throttle = rig.throttle()
+    v.add(throttle, inputs=["throttle", "throttle@age"], name="throttle")
+    return v, throttle
+
+
+def _changes(rig: Rig, t0: float = 0.0):
+    return [(round(t - t0, 6), p) for t, p in rig.pca.timeline]
+
+
+@pytest.mark.parametrize("kind", ["ours", "donkeycar"])
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_case_1_user_mode_with_the_pilot_never_run_drives(kind):
+    rig = Rig(asyncio.get_running_loop().time)
+    pilot = Pilot()
+    v, throttle = _car(rig, [(0, "user")], pilot, _make_drive_mode(kind))
+    await v.run(RATE, 40)
+    rig.close()
+    assert pilot.calls == 0
+    assert _changes(rig)[:3] == [(0.0, 0), (0.0, NEUTRAL), (0.0, HALF)]  # drives from the first tick
+    assert throttle.failsafe_events == 0
+    assert rig.pca.pulse_at(38 * PERIOD) == HALF
+
+
+@pytest.mark.parametrize("kind", ["ours", "donkeycar"])
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_case_2_back_to_user_with_a_stale_pilot_drives_from_the_first_user_tick(kind):
+    rig = Rig(asyncio.get_running_loop().time)
+    # local for 10 ticks, the pilot dies at tick 5 (throttle stopped by the failsafe), user again at tick 20
+    pilot = Pilot(silent_from=5)
+    v, throttle = _car(rig, [(0, "local"), (20, "user")], pilot, _make_drive_mode(kind))
+    await v.run(RATE, 40)
+    rig.close()
+    assert throttle.failsafe_events == 1
+    # the pilot's last command (tick 4, 0.20 s) went stale at 0.45 s; the driver has the car at tick 20
+    assert rig.pca.pulse_at(0.44) == HALF
+    assert rig.pca.pulse_at(0.46) == NEUTRAL
+    assert rig.pca.first_time(HALF, 0.46) == pytest.approx(20 * PERIOD)
+
+
+@pytest.mark.parametrize("how", ["none", "raise"])
+@pytest.mark.parametrize("kind", ["ours", "donkeycar"])
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_case_3_a_silent_pilot_in_local_mode_stops_within_the_window(kind, how):
+    rig = Rig(asyncio.get_running_loop().time)
+    pilot = Pilot(silent_from=10, how=how)
+    v, throttle = _car(rig, [(0, "local")], pilot, _make_drive_mode(kind))
+    ages = Record()
+    v.add(ages, inputs=["pilot/throttle@age", "throttle@age"])
+    await v.run(RATE, 30)
+    rig.close()
+    # last fresh pilot command at tick 9 (0.45 s): neutral exactly one window (0.25 s) later, held
+    assert rig.pca.pulse_at(0.69) == HALF
+    assert rig.pca.first_time(NEUTRAL, 0.46) == pytest.approx(0.70)
+    assert rig.pca.pulse_at(28 * PERIOD) == NEUTRAL
+    assert throttle.failsafe_events == 1
+    # a fresh gamepad does not hide the dead pilot: the selected command is as old as the pilot's
+    assert ages.seen[-1][0] == pytest.approx(20 * PERIOD)
+    assert ages.seen[-1][1] == pytest.approx(20 * PERIOD)
+
+
+@pytest.mark.parametrize("kind", ["ours", "donkeycar"])
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_case_4_a_fresh_pilot_in_local_mode_drives(kind):
+    rig = Rig(asyncio.get_running_loop().time)
+    pilot = Pilot()
+    v, throttle = _car(rig, [(0, "local")], pilot, _make_drive_mode(kind))
+    await v.run(RATE, 40)
+    rig.close()
+    assert pilot.calls == 40
+    assert throttle.failsafe_events == 0
+    assert rig.pca.first_time(HALF, 0.0) == 0.0
+    assert NEUTRAL not in [p for t, p in rig.pca.timeline if 0.0 < t < 38.5 * PERIOD]
+
+
+# --------------------------------------------------------------------------------------------- sources
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_sensor_sample_two_seconds_old_reads_two_seconds_old():
+    from asyncdonkey import Poller
+
+    reads = {"n": 0}
+
+    def read_once():
+        reads["n"] += 1
+        if reads["n"] > 1:
+            raise OSError(121, "Remote I/O error")  # the sensor goes quiet after its first sample
+        return (0.0, 0.0, 9.81)
+
+    poller = Poller(read_once, rate_hz=50, name="imu")
+    ages = Record()
+    v = Vehicle()
+    v.add(poller, outputs=["imu/sample"])
+    v.add(ages, inputs=["imu/sample@age"])
+    await v.run(RATE, 41)
+    assert v.mem["imu/sample"] == (0.0, 0.0, 9.81)  # re-published every tick ...
+    assert ages.seen[-1][0] == pytest.approx(2.0)  # ... and still 2 s old
+    assert poller.errors > 0

@@ -60,7 +60,7 @@ def _drive(blocker: Blocker, **throttle_kw):
 def test_a_blocked_loop_cannot_defeat_the_throttle_failsafe(spin, caplog):
     caplog.set_level(logging.WARNING)
     blocker = Blocker(at=10, seconds=1.2, spin=spin)
-    rig, throttle, report = _drive(blocker)
+    rig, _throttle, report = _drive(blocker)
     t0 = blocker.started
     assert t0 is not None and blocker.ended is not None
     # driving at 0.5 when the part blocked the loop thread ...
@@ -84,7 +84,7 @@ def test_a_blocked_loop_cannot_defeat_the_throttle_failsafe(spin, caplog):
 
 def test_no_watchdog_event_while_commands_are_fresh():
     blocker = Blocker(at=10, seconds=0.05)  # a 50 ms hiccup is well inside the window
-    rig, throttle, report = _drive(blocker)
+    rig, _throttle, report = _drive(blocker)
     assert report.watchdog_events == 0
     assert report.longest_block_ms is None
     assert NEUTRAL not in [p for t, p in rig.pca.timeline if blocker.started <= t <= blocker.ended + 0.1]
@@ -92,7 +92,7 @@ def test_no_watchdog_event_while_commands_are_fresh():
 
 def test_the_failsafe_window_is_the_actuators():
     blocker = Blocker(at=10, seconds=1.0)
-    rig, throttle, report = _drive(blocker, failsafe_age_s=0.6)
+    rig, _throttle, _report = _drive(blocker, failsafe_age_s=0.6)
     stopped = rig.pca.first_time(NEUTRAL, blocker.started)
     assert stopped is not None
     assert 0.6 - 0.06 <= stopped - blocker.started <= 0.6 + SLACK

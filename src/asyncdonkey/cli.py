@@ -18,7 +18,10 @@ import argparse
 import importlib.util
 import inspect
 import logging
+import os
 import sys
+import threading
+import time
 import traceback
 from pathlib import Path
 from types import ModuleType
@@ -146,14 +149,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     rate = args.hz if args.hz is not None else float(getattr(module, "DRIVE_LOOP_HZ", 20))
     try:
-        run_blocking(
+        report = run_blocking(
             vehicle.run_with_signals(rate, args.max_loops, duration=args.duration, verbose=args.verbose),
             use_uvloop=not args.no_uvloop,
         )
     except PartError as exc:
         print(f"asyncdonkey: {exc}", file=sys.stderr)
-        return 1
-    return 0
+        return _leave(1)
+    if report.shutdown_abandoned:
+        print(
+            f"asyncdonkey: shutdown of {', '.join(map(repr, report.shutdown_abandoned))} did not finish in time",
+            file=sys.stderr,
+        )
+        return _leave(1)
+    return _leave(0)
+
+
+#: how long the interpreter may take to exit after a drive before the process is ended without it
+EXIT_GRACE_S = 2.0
+
+
+def _leave(status: int) -> int:
+    """Return ``status``, guarding the interpreter's exit: a part that left a thread busy (a hung executor
+    call, which the interpreter joins at exit) must not keep the process alive after the report. A daemon
+    timer ends the process ``EXIT_GRACE_S`` after the drive if the normal exit has not happened by then."""
+
+    def guard() -> None:
+        time.sleep(EXIT_GRACE_S)
+        busy = [t.name for t in threading.enumerate() if t.is_alive() and not t.daemon]
+        print(f"asyncdonkey: exiting without waiting for threads still running: {', '.join(busy)}", file=sys.stderr)
+        sys.stderr.flush()
+        os._exit(status or 1)
+
+    threading.Thread(target=guard, name="asyncdonkey-exit-guard", daemon=True).start()
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:

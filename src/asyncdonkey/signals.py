@@ -29,7 +29,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
-from .errors import AsyncdonkeyError
 
 if TYPE_CHECKING:
     from .drive import Drive
@@ -42,10 +41,11 @@ logger = logging.getLogger("asyncdonkey.loop")
 EXIT_INTERRUPTED = 130
 
 
-class PartInterrupted(AsyncdonkeyError, BaseException):
+class PartInterrupted(BaseException):
     """Raised inside a sync part that still held the loop thread after a stop request's grace.
 
-    A ``BaseException`` (like ``KeyboardInterrupt``), so a part's ``except Exception`` does not swallow it.
+    A ``BaseException`` (like ``KeyboardInterrupt``), not an ``Exception``, so a part's ``except Exception``
+    does not swallow it; the drive loop catches it, counts it against the part and goes on stopping.
     """
 
 

@@ -182,6 +182,7 @@ def test_sigterm_stops_like_sigint(car):
     c.proc.send_signal(signal.SIGTERM)
     status, took, err = c.finish(timeout=10)
     assert status == 0, err
+    assert took < 1.0 + 2.5
     assert "stopped by: SIGTERM" in err
 
 

@@ -119,10 +119,34 @@ def pilot_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def safety_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for kind in ("sleeping", "spinning"):
+        w = _get(d, "watchdog", kind) or {}
+        rows.append(
+            (
+                f"watchdog, loop blocked ({kind})",
+                "neutral after the stale deadline, max (ms)",
+                _fmt(w.get("after_deadline_max_ms"), 1),
+                "never",
+                "",
+            )
+        )
+    o = _get(d, "provenance", "one_input", "added_ns")
+    rows.append(("provenance", "added per part output (ns)", _fmt(o, 0), "", ""))
+    o, t = _get(d, "overhead", "ours_us"), _get(d, "overhead", "donkeycar_us")
+    rows.append(("provenance", "per-part overhead incl. origins (µs)", _fmt(o), _fmt(t), _ratio(o, t)))
+    s = d.get("sim_car") or {}
+    for key, label in (("p50_ms", "p50"), ("p99_ms", "p99")):
+        rows.append(("simulated car 20 Hz", f"sensing-to-actuation {label} (ms)", _fmt(s.get(key), 1), "n/a", ""))
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "tub": tub_rows,
     "pilot": pilot_rows,
+    "safety": safety_rows,
 }
 
 

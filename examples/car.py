@@ -63,6 +63,13 @@ def recent_lateness_p99_ms(vehicle: Vehicle, ticks: int = 200) -> float | None:
     return float(np.percentile(late, 99)) * 1e3 if len(late) else None
 
 
+def recent_latency_p99_ms(vehicle: Vehicle, ticks: int = 200) -> float | None:
+    """Sensing-to-actuation latency p99 of the car's (first) actuator over its last ``ticks`` commands, in ms."""
+    series = next(iter(vehicle.profiler.latency.values()), None)
+    lat = series.recent(drop_last=False)[-ticks:] if series is not None else ()
+    return float(np.percentile(lat, 99)) * 1e3 if len(lat) else None
+
+
 class SimController:
     """The simulator's stand-in for a person at the controller: Donkeycar's four controller outputs.
 
@@ -139,10 +146,12 @@ class Status:
 
     def line(self, hz: float) -> str:
         p99 = recent_lateness_p99_ms(self.vehicle) or 0.0
+        latency = recent_latency_p99_ms(self.vehicle) or 0.0
         mean_cte = self.abs_cte_sum / self.ticks if self.ticks else 0.0
         lap_share = (self.car.sim.progress / self.car.sim.track.length) % 1.0
         return (
             f"laps {self.laps:3d} (+{lap_share:4.0%}) | {hz:5.1f} Hz | lateness p99 {p99:6.2f} ms | "
+            f"sensing→actuation p99 {latency:5.1f} ms | "
             f"cte {self.cte:+.2f} m (mean |cte| {mean_cte:.2f}) | off track {self.off_track_ticks} ticks | "
             f"respawns {self.car.sim.respawns}"
         )

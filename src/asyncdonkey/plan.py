@@ -228,19 +228,20 @@ def _storer(
         return now if o == _INF else o
 
     def passed_through(value: Any, args: Sequence[Any]) -> float | None:
-        # the same object may sit in several inputs (a small constant both a driver and a skipped pilot
-        # published): a live input wins over a dormant one, then the oldest
+        if value is None:
+            return None
         o = None
         live = False
-        if value is not None:
-            for i, k in passthrough:
-                if args[i] is value:
-                    t = oget(k)
-                    if t is None:
-                        continue
-                    k_live = k not in dormant
-                    if o is None or (k_live and not live) or (k_live == live and t < o):
-                        o, live = t, k_live
+        for i, k in passthrough:
+            if args[i] is value:
+                # the same object may sit in several inputs (a small constant both a driver and a skipped
+                # pilot published): a live input wins over a dormant one, then the oldest
+                t = oget(k)
+                if t is None:
+                    continue
+                k_live = k not in dormant
+                if o is None or (k_live and not live) or (k_live == live and t < o):
+                    o, live = t, k_live
         return o
 
     n = len(outs)
@@ -298,6 +299,20 @@ def _storer(
                 origins[k] = o
 
         return store_stated_many
+
+    if n == 1 and len(sources) == 1 and len(passthrough) == 1:
+        # the common case, one input feeding one output: its origin, unless its producer was skipped this
+        # tick and the output is not the input itself passed through
+        (k1,) = outs
+        ((i0, k0),) = passthrough
+
+        def store_one_from_one(value: Any, args: Sequence[Any], now: float) -> None:
+            d[k1] = value
+            stamps[k1] = now
+            t = oget(k0)
+            origins[k1] = now if t is None or (k0 in dormant and args[i0] is not value) else t
+
+        return store_one_from_one
 
     if n == 1:
         (k1,) = outs

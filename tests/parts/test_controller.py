@@ -216,3 +216,28 @@ async def test_vehicle_drives_with_the_controller(pad, threaded):
     assert throttles == [0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0]
     assert modes == ["user"] * 5 + ["local_angle"] * 2 + ["user"] * 2
     assert not ctr.connected
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_held_stick_is_fresh_and_an_unplugged_pad_ages(pad):
+    """A held stick sends no events yet the command is current; once unplugged, the commands age from then."""
+    ctr = JoystickController(str(pad.path))
+
+    class Ages:
+        def __init__(self):
+            self.rows = []
+
+        def run(self, age):
+            self.rows.append(age)
+
+    ages = Ages()
+    v = Vehicle()
+    v.add(Script({2: lambda: pad.move_axis(THROTTLE, -32767), 10: lambda: pad.unplug()}), name="driver")
+    v.add(ctr, outputs=ctr.outputs)
+    v.add(ages, inputs=["user/throttle@age"])
+    await v.run(rate_hz=20, max_loop_count=20)
+    assert ages.rows[:11] == [0.0] * 11  # held from tick 3 on: no events, still fresh
+    unplugged = ages.rows[11:]
+    # the reader notices the unplug before tick 11; from then the commands age by one period per tick
+    assert unplugged == pytest.approx([0.05 * (k + 1) for k in range(len(unplugged))])

@@ -1,0 +1,240 @@
+"""Safety figures: the watchdog's time to neutral, what data provenance costs, and sensing-to-actuation latency.
+
+    python benchmarks/safety.py            # full runs (about 40 s)
+    python benchmarks/safety.py --quick    # a look
+    python benchmarks/safety.py --json     # for run_all.py
+
+* **Watchdog** (real loop, uvloop, PCA9685 register model behind the real smbus2 API): a car drives at half
+  throttle with the stale-command failsafe wired (``throttle@age``, 250 ms window) when a sync part blocks the
+  loop thread for a second, sleeping or spinning in Python with the GIL. Measured: from the moment the command
+  went stale (its origin + the window) to the neutral pulse on the chip, and from the block's start. Donkeycar has
+  no failsafe: its car drives on through any stall (the figure there is the block itself).
+* **Provenance cost**: nanoseconds a part's output store takes with origins (the oldest-input rule and the
+  pass-through test) against the plain store the loop did before (value + write time), for a one-input part and
+  for a drive-mode selector (five inputs, two outputs); and the per-part loop overhead, flat out, beside
+  Donkeycar's ``Vehicle.update_parts``.
+* **Simulated car** (``examples/car.py``, real time, uvloop): sensing-to-actuation latency of the simulated car
+  (frame age at the tick + pilot inference + the write), p50/p99/max, from the drive's report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "examples"))
+sys.path.insert(0, str(ROOT / "tests" / "safety"))
+
+from machine_info import describe  # noqa: E402
+
+from asyncdonkey import Memory, Vehicle  # noqa: E402
+from asyncdonkey.loop import run_blocking  # noqa: E402
+from asyncdonkey.plan import build_entry  # noqa: E402
+
+WINDOW_S = 0.25
+NEUTRAL = 370
+
+
+def watchdog_trial(spin: bool, block_s: float = 1.0) -> tuple[float, float]:
+    """(ms from stale deadline to neutral, ms from block start to neutral) for one blocked drive."""
+    from rig import Const, Rig
+
+    class Blocker:
+        def __init__(self) -> None:
+            self.k = 0
+            self.started = 0.0
+
+        def run(self) -> None:
+            self.k += 1
+            if self.k != 10:
+                return
+            self.k_blocked = self.k - 1  # index of this tick
+            self.started = time.monotonic()
+            end = self.started + block_s
+            if spin:
+                while time.monotonic() < end:
+                    pass
+            else:
+                time.sleep(block_s)
+
+    class Origin:
+        """Remembers the origin of the command the throttle was given on each tick."""
+
+        def __init__(self) -> None:
+            self.origins: list[float] = []
+
+        def run(self, age: float) -> None:
+            self.origins.append(time.monotonic() - age)
+
+    rig = Rig()
+    v = Vehicle()
+    v.add(Const(0.5), outputs=["throttle"])
+    v.add(rig.throttle(), inputs=["throttle", "throttle@age"], name="throttle")
+    origin = Origin()
+    v.add(origin, inputs=["throttle@age"])
+    blocker = Blocker()
+    v.add(blocker)
+    run_blocking(v.run(20, 15))
+    rig.close()
+    neutral = rig.pca.first_time(NEUTRAL, blocker.started)
+    assert neutral is not None
+    stale_at = origin.origins[blocker.k_blocked] + WINDOW_S  # the command in force when the loop blocked
+    return (neutral - stale_at) * 1e3, (neutral - blocker.started) * 1e3
+
+
+def watchdog(trials: int) -> dict:
+    out = {}
+    for spin in (False, True):
+        late, since_block = zip(*(watchdog_trial(spin) for _ in range(trials)), strict=True)
+        out["spinning" if spin else "sleeping"] = {
+            "trials": trials,
+            "after_deadline_p50_ms": float(np.percentile(late, 50)),
+            "after_deadline_max_ms": float(np.max(late)),
+            "since_block_p50_ms": float(np.percentile(since_block, 50)),
+            "since_block_max_ms": float(np.max(since_block)),
+        }
+    return out
+
+
+def _store_ns(store, value, args, n: int) -> float:
+    t = time.perf_counter_ns()
+    for _ in range(n):
+        store(value, args, 1.0)
+    return (time.perf_counter_ns() - t) / n
+
+
+def provenance(n: int) -> dict:
+    """ns per store: with origins (this runtime) vs the plain store (value + write time)."""
+    mem = Memory()
+    mem.set("x", 1.0, origin=0.5)
+    for k in ("user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"):
+        mem.set(k, 0.3, origin=0.5)
+
+    class One:
+        def run(self, x):
+            return x
+
+    class Select:
+        def run(self, m, ua, ut, pa, pt):
+            return ua, ut
+
+    def offload(fn):
+        return fn
+
+    one = build_entry(mem, One(), "one", ["x"], ["y"], False, None, False, "stop", 2.0, None, None, offload)
+    sel = build_entry(
+        mem,
+        Select(),
+        "drive_mode",
+        ["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
+        ["angle", "throttle"],
+        False,
+        None,
+        False,
+        "stop",
+        2.0,
+        None,
+        None,
+        offload,
+    )
+    d, stamps = mem.d, mem.stamps
+
+    def plain_one(value, args, now):
+        d["y"] = value
+        stamps["y"] = now
+
+    def plain_two(values, args, now):
+        for k, v in zip(("angle", "throttle"), values, strict=True):
+            d[k] = v
+            stamps[k] = now
+
+    args1 = one.args()
+    args5 = sel.args()
+    fresh = 2.0 + 0.0  # a new object: the inherit path
+    res = {}
+    for label, store, plain, value, args in (
+        ("one_input", one.store, plain_one, fresh, args1),
+        ("selector_5in_2out", sel.store, plain_two, (args5[1], fresh), args5),
+    ):
+        ours = min(_store_ns(store, value, args, n) for _ in range(5))
+        base = min(_store_ns(plain, value, args, n) for _ in range(5))
+        res[label] = {"with_origins_ns": ours, "plain_ns": base, "added_ns": ours - base}
+    return res
+
+
+def loop_overhead(ticks: int) -> dict:
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import loop as loop_bench
+
+    out = {"ours_us": loop_bench.ours_overhead(ticks, True)}
+    try:
+        out["donkeycar_us"] = loop_bench.donkey_overhead(ticks)
+    except Exception:  # Donkeycar not installed
+        pass
+    return out
+
+
+def sim_car_latency(seconds: float) -> dict:
+    from car import make_car
+
+    v, _car = make_car(seconds=seconds, status=None)
+    report = run_blocking(v.run(20))
+    lat = next(iter(report.latency_ms.values()), None) or {}
+    return {
+        "seconds": seconds,
+        "p50_ms": lat.get("50%"),
+        "p99_ms": lat.get("99%"),
+        "max_ms": lat.get("max"),
+        "pilot_p50_ms": (report.parts.get("OnnxPilot") or {}).get("50%"),
+        "achieved_hz": report.achieved_hz,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    logging.disable(logging.WARNING)  # the watchdog's own warnings are the event being timed
+    results = {
+        "machine": describe(),
+        "watchdog": watchdog(3 if args.quick else 10),
+        "provenance": provenance(20_000 if args.quick else 200_000),
+        "overhead": loop_overhead(5_000 if args.quick else 20_000),
+        "sim_car": sim_car_latency(5.0 if args.quick else 15.0),
+    }
+    if args.json:
+        print(json.dumps(results, indent=2))
+        return 0
+    print(f"safety figures on {results['machine']}")
+    for kind, w in results["watchdog"].items():
+        print(
+            f"watchdog, loop blocked ({kind}): neutral {w['after_deadline_p50_ms']:.1f} ms after the stale deadline "
+            f"(max {w['after_deadline_max_ms']:.1f}), {w['since_block_p50_ms']:.0f} ms after the block began "
+            f"(max {w['since_block_max_ms']:.0f}); {w['trials']} trials"
+        )
+    for label, p in results["provenance"].items():
+        print(
+            f"provenance, {label}: store {p['with_origins_ns']:.0f} ns with origins vs {p['plain_ns']:.0f} ns plain "
+            f"(+{p['added_ns']:.0f} ns)"
+        )
+    ov = results["overhead"]
+    dk = f", Donkeycar {ov['donkeycar_us']:.2f} µs" if "donkeycar_us" in ov else ""
+    print(f"per-part loop overhead (provenance included): {ov['ours_us']:.2f} µs{dk}")
+    s = results["sim_car"]
+    print(
+        f"simulated car, sensing-to-actuation: p50 {s['p50_ms']:.1f} ms, p99 {s['p99_ms']:.1f} ms, "
+        f"max {s['max_ms']:.1f} ms (pilot p50 {s['pilot_p50_ms']:.2f} ms) at {s['achieved_hz']:.2f} Hz"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -54,6 +54,7 @@ import numpy as np
 
 from .clock import get_clock
 from .loop import PartError, Vehicle
+from .options import option, positive_float
 from .parts.tub import Record, Tub, TubError
 
 __all__ = [
@@ -542,7 +543,7 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     p.add_argument(
         "--speed",
-        type=_positive_float,
+        type=option(positive_float),
         default=None,
         help="replay in real time at this multiple of the recorded pace (default: the virtual clock, "
         "as fast as the CPU allows)",
@@ -551,16 +552,6 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--angle-key", default="user/angle", help="the recorded angle (default: %(default)s)")
     p.add_argument("--throttle-key", default="user/throttle", help="the recorded throttle (default: %(default)s)")
     return p
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
 
 
 def replay_main(args: argparse.Namespace) -> int:

@@ -2,6 +2,7 @@
 
     make run                                                # 25 s (a lap and a bit) on the shipped pilot
     make run ARGS="-- --seconds 120"                        # longer (0: until Ctrl-C)
+    make run ARGS="-- --laps 3"                             # until 3 laps (no time limit unless --seconds)
     make run ARGS="-- --pilot user --record data/tub"       # the scripted "user" drives and records
     make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model
     asyncdonkey run examples/car.py --hz 50 -- --laps 3     # any rate; stop after 3 laps
@@ -39,10 +40,13 @@ from typing import Any, TextIO
 import numpy as np
 
 from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.options import non_negative_float, non_negative_int, option
 from asyncdonkey.parts.control import DRIVE_MODES, AutoRecordOnThrottle, DriveMode, PilotCondition, normalise_mode
 from asyncdonkey.parts.sim import TELEMETRY_OUTPUTS, ScriptedDriver, SimCar, Simulator
 
 DRIVE_LOOP_HZ = 20
+#: how long `make run` drives when neither --seconds nor --laps is given (a lap and a bit)
+DEFAULT_SECONDS = 25.0
 DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "sim_pilot.onnx"
 #: What a recording holds: Donkeycar's channels plus the simulator's ground truth for analysis.
 RECORD_INPUTS = (
@@ -204,7 +208,7 @@ def make_car(
     pilot: str | Path = DEFAULT_MODEL,
     mode: str | None = None,
     record: str | Path | None = None,
-    seconds: float = 25.0,
+    seconds: float = DEFAULT_SECONDS,
     laps: int = 0,
     ai_throttle_mult: float = 1.3,
     seed: int = 0,
@@ -269,17 +273,27 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
-    ap.add_argument("--seconds", type=float, default=25.0, help="stop after S seconds (0: until Ctrl-C)")
-    ap.add_argument("--laps", type=int, default=0, help="stop after N laps (0: no limit)")
+    ap.add_argument(
+        "--seconds",
+        type=option(non_negative_float),
+        default=None,
+        help=f"stop after S seconds (0: no time limit; default {DEFAULT_SECONDS:g}, or no limit with --laps)",
+    )
+    ap.add_argument(
+        "--laps", type=option(non_negative_int), default=0, help="stop after N laps (0: no limit; the default)"
+    )
     ap.add_argument(
         "--ai-throttle-mult",
-        type=float,
+        type=option(non_negative_float),
         default=1.3,
         help="scale the pilot's throttle (default 1.3: the shipped pilot learnt the scripted driver's cautious pace)",
     )
-    ap.add_argument("--seed", type=int, default=0, help="the scripted driver's seed")
+    ap.add_argument("--seed", type=option(non_negative_int), default=0, help="the scripted driver's seed")
     ap.add_argument("--quiet", action="store_true", help="no live status line")
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    if args.seconds is None:  # --laps N drives until N laps; a time limit only when asked for
+        args.seconds = 0.0 if args.laps else DEFAULT_SECONDS
+    return args
 
 
 def build(argv: list[str]) -> Vehicle:

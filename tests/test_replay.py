@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import json
+import re
 import subprocess
 import sys
 import time
@@ -195,6 +196,13 @@ def test_real_time_speed_keeps_the_recorded_pace(tmp_path):
     assert np.all(offsets >= due - 1e-9)  # never early on a real clock
     assert report.real_s >= due[-1]
     assert report.late_ms_max >= 0.0
+    # the summary tells the truth: 1.4 s of recording, at (at most) ten times its pace, not "0.14 s ... (1x)"
+    assert report.replayed_s == pytest.approx(1.4, abs=1e-9)
+    pace = report.replayed_s / report.real_s
+    assert pace <= 10.0
+    shown = re.search(r"replayed +1\.4 s of recording in [\d.]+ s \(([\d.]+)x\), real time x10", report.format_table())
+    assert shown is not None, report.format_table()
+    assert float(shown.group(1)) == pytest.approx(pace, rel=0.05)
 
 
 # ----------------------------------------------------------------------------------------------- skips
@@ -214,6 +222,49 @@ def test_deleted_and_unplayable_records_are_skipped_and_counted(tmp_path, model)
     kept = [r for r in Tub(path) if r["_index"] in set(played)]
     exp = np.array([expected_outputs(r["cam/image_array"])[0] for r in kept])
     assert report.angle_mae == pytest.approx(np.abs(exp - [r["user/angle"] for r in kept]).mean(), abs=TOL)
+
+
+def test_corrupt_catalog_lines_are_reported_with_where_they_are(tmp_path, model):
+    path = record_tub(tmp_path / "tub", ticks=12)
+    catalog = path / "catalog_0.catalog"
+    lines = catalog.read_bytes().split(b"\n")
+    lines[3] = b"\x00" * len(lines[3])  # a power cut's zeros: found when the tub is opened
+    lines[7] = b"{" + b"x" * (len(lines[7]) - 2) + b"}"  # looks like a record, is not JSON: found when read
+    catalog.write_bytes(b"\n".join(lines))
+    report = replay(path, model, csv_path=tmp_path / "rows.csv")
+    assert report.records == 10 and report.skipped == {"corrupt": 2}
+    assert report.corrupt == [
+        {"index": 3, "catalog": "catalog_0.catalog", "line": 4},
+        {"index": 7, "catalog": "catalog_0.catalog", "line": 8},
+    ]
+    table = report.format_table()
+    assert "10 scored, 2 skipped (corrupt 2)" in table
+    assert "corrupt          catalog_0.catalog line 4, catalog_0.catalog line 8" in table
+    assert json.loads(json.dumps(report.as_dict()))["corrupt"] == report.corrupt
+    with open(tmp_path / "rows.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["index"]) for r in rows] == list(range(12))  # every record, in index order
+    assert rows[3]["skipped"] == "corrupt (catalog_0.catalog line 4)" and rows[3]["pilot_angle"] == ""
+    assert rows[7]["skipped"] == "corrupt (catalog_0.catalog line 8)"
+    assert all(r["skipped"] == "" and r["pilot_angle"] != "" for i, r in enumerate(rows) if i not in (3, 7))
+
+
+def test_csv_lists_skipped_records_with_their_reason(tmp_path):
+    path = record_tub(tmp_path / "tub", ticks=6, holes={2: "user/angle", 5: "cam/image_array"})
+    report = replay(path, lambda image: (0.0, 0.0), csv_path=tmp_path / "rows.csv")
+    with open(tmp_path / "rows.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["index"], r["skipped"]) for r in rows] == [
+        ("0", ""),
+        ("1", "no_user_values"),
+        ("2", ""),
+        ("3", ""),
+        ("4", "no_image"),
+        ("5", ""),
+    ]
+    stamps = {r["_index"]: r["_timestamp_ms"] for r in Tub(path)}
+    assert rows[1]["timestamp_ms"] == repr(stamps[1]) and rows[1]["angle_err"] == ""
+    assert report.skipped == {"no_image": 1, "no_user_values": 1}
 
 
 def test_a_tub_with_nothing_playable_gives_an_empty_report(tmp_path):
@@ -242,8 +293,8 @@ def test_csv_rows_are_exact_and_two_replays_are_identical(recorded, model, tmp_p
     assert len(rows) == 1 + a.records
     stamps = [r["_timestamp_ms"] for r in Tub(recorded)]
     for text, row, stamp in zip(rows[1:], a.rows, stamps, strict=True):
-        idx, ts, ua, pa, ut, pt, ae, te = text
-        assert int(idx) == row.index and int(ts) == stamp
+        idx, ts, ua, pa, ut, pt, ae, te, skipped = text
+        assert int(idx) == row.index and int(ts) == stamp and skipped == ""
         # the text reads back to the very same floats
         assert (float(ua), float(pa), float(ut), float(pt)) == (
             row.user_angle,
@@ -282,7 +333,7 @@ def test_cli_table_json_and_csv_match_the_library(recorded, model, tmp_path):
     proc = run_cli(recorded, "--pilot", model, "--json", "--csv", tmp_path / "cli.csv")
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
-    assert out["records"] == 120 and out["skipped"] == {}
+    assert out["records"] == 120 and out["skipped"] == {} and out["corrupt"] == []
     for key in ("angle_mae", "throttle_mae", "angle_max_err", "throttle_max_err", "baseline_angle_mae", "replayed_s"):
         assert out[key] == getattr(lib, key), key
     assert (tmp_path / "cli.csv").read_bytes() == (tmp_path / "lib.csv").read_bytes()

@@ -8,8 +8,10 @@ arguments that follow ``--`` on the command line, so a car can have options of i
 
 An optional module-level ``DRIVE_LOOP_HZ`` (Donkeycar's config name) sets the default rate.
 
-Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type) print one line and exit
-with status 2, without a traceback: the user needs the file and line, not our stack.
+Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type, a ``DRIVE_LOOP_HZ`` that
+is not a rate) and bad option values print one line and exit with status 2, without a traceback: the user needs
+the file and line, or the option and what it expects, not our stack. A part failing while driving prints its
+one-line error and exits with status 1; ``--verbose`` adds the traceback.
 """
 
 from __future__ import annotations
@@ -25,12 +27,13 @@ import time
 import traceback
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, NoReturn
 
 from . import __version__
 from .loop import PartError, Vehicle, run_blocking
+from .options import BadValue, non_negative_int, option, positive_float
 
-__all__ = ["CarFileError", "load_car", "main"]
+__all__ = ["CarFileError", "car_rate_hz", "load_car", "main"]
 
 EXIT_USAGE = 2
 
@@ -100,35 +103,41 @@ def _where(exc: BaseException, path: Path) -> str:
     return ""
 
 
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
+def car_rate_hz(module: ModuleType, path: str | Path, default: float = 20.0) -> float:
+    """The car file's ``DRIVE_LOOP_HZ`` (``default`` without one); :class:`CarFileError` if it is not a rate."""
+    value = getattr(module, "DRIVE_LOOP_HZ", default)
+    try:
+        return positive_float(value)
+    except BadValue as exc:
+        raise CarFileError(f"{path}: DRIVE_LOOP_HZ: {exc} (the drive loop rate in Hz)") from None
 
 
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line (``prog: error: message``) with exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="asyncdonkey", description="asyncio-native robot runtime")
+    parser = _Parser(prog="asyncdonkey", description="asyncio-native robot runtime")
     parser.add_argument("--version", action="version", version=f"asyncdonkey {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     run = sub.add_parser("run", help="drive a car file (a Python file whose build() returns a Vehicle)")
     run.add_argument("car", help="path to the car file, e.g. examples/car.py")
     run.add_argument(
         "--hz",
-        type=_positive_float,
+        type=option(positive_float),
         default=None,
         help="drive loop rate (default: the file's DRIVE_LOOP_HZ, else 20)",
     )
-    run.add_argument("--max-loops", type=_non_negative_int, default=None, help="stop after N ticks")
-    run.add_argument("--duration", type=_positive_float, default=None, help="stop after S seconds")
-    run.add_argument("--verbose", action="store_true", help="jitter warnings and the profiler table every 200 loops")
+    run.add_argument("--max-loops", type=option(non_negative_int), default=None, help="stop after N ticks")
+    run.add_argument("--duration", type=option(positive_float), default=None, help="stop after S seconds")
+    run.add_argument(
+        "--verbose",
+        action="store_true",
+        help="jitter warnings, the profiler table every 200 loops, and the traceback of a part failure",
+    )
     run.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
     run.epilog = "Arguments after a lone -- are passed to the car's build()."
     try:
@@ -144,16 +153,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
     car_args = list(getattr(args, "car_args", []))
     try:
         vehicle, module = load_car(args.car, car_args)
+        rate = args.hz if args.hz is not None else car_rate_hz(module, args.car)
     except CarFileError as exc:
         print(f"asyncdonkey: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    rate = args.hz if args.hz is not None else float(getattr(module, "DRIVE_LOOP_HZ", 20))
     try:
         report = run_blocking(
             vehicle.run_with_signals(rate, args.max_loops, duration=args.duration, verbose=args.verbose),
             use_uvloop=not args.no_uvloop,
         )
     except PartError as exc:
+        if args.verbose:
+            traceback.print_exception(exc, file=sys.stderr)
         print(f"asyncdonkey: {exc}", file=sys.stderr)
         return _leave(1)
     if report.shutdown_abandoned:

@@ -54,6 +54,7 @@ import numpy as np
 
 from .clock import get_clock
 from .loop import PartError, Vehicle
+from .options import option, positive_float
 from .parts.tub import Record, Tub, TubError
 
 __all__ = [
@@ -61,6 +62,7 @@ __all__ = [
     "ReplayError",
     "ReplayReport",
     "ReplayRow",
+    "SkippedRecord",
     "add_replay_parser",
     "areplay",
     "replay",
@@ -78,6 +80,7 @@ CSV_COLUMNS = (
     "pilot_throttle",
     "angle_err",
     "throttle_err",
+    "skipped",
 )
 
 #: The drive loop's rate during a replay: far above any recording's rate, so every tick is due at once and
@@ -120,7 +123,7 @@ class ReplayRow:
 
     def csv_fields(self) -> list[str]:
         """The row as CSV text, floats in their shortest exact form (``repr``), so identical runs match byte for
-        byte and the file reads back to the very same numbers."""
+        byte and the file reads back to the very same numbers; the ``skipped`` column is empty."""
         return [
             str(self.index),
             repr(self.timestamp_ms),
@@ -130,7 +133,30 @@ class ReplayRow:
             repr(self.pilot_throttle),
             repr(self.angle_err),
             repr(self.throttle_err),
+            "",
         ]
+
+
+@dataclass(frozen=True)
+class SkippedRecord:
+    """A record that was not scored, and why (a ``skipped`` reason; a corrupt line also says where it is)."""
+
+    index: int | None
+    timestamp_ms: int | float | None
+    reason: str
+    catalog: str | None = None
+    line: int | None = None
+
+    @property
+    def why(self) -> str:
+        if self.catalog is None:
+            return self.reason
+        return f"{self.reason} ({self.catalog} line {self.line})"
+
+    def csv_fields(self) -> list[str]:
+        """Index, timestamp (when known), empty figures, and the reason in the ``skipped`` column."""
+        ts = "" if self.timestamp_ms is None else repr(self.timestamp_ms)
+        return ["" if self.index is None else str(self.index), ts, "", "", "", "", "", "", self.why]
 
 
 @dataclass
@@ -146,8 +172,11 @@ class ReplayReport:
     records: int = 0
     """records scored (played through the pilot)."""
     skipped: dict[str, int] = field(default_factory=dict)
-    """records passed over, by reason: ``no_timestamp``, ``no_image``, ``bad_image`` (file missing or not
-    decodable), ``no_user_values`` (missing or not a finite number). Deleted records are not played at all."""
+    """records passed over, by reason: ``corrupt`` (a catalog line that is not a record: see ``corrupt``),
+    ``no_timestamp``, ``no_image``, ``bad_image`` (file missing or not decodable), ``no_user_values`` (missing or
+    not a finite number). Deleted records are not played at all."""
+    corrupt: list[dict[str, Any]] = field(default_factory=list)
+    """where each corrupt record is: ``{"index", "catalog", "line"}`` (the line counted from 1)."""
     angle_mae: float | None = None
     throttle_mae: float | None = None
     angle_max_err: float | None = None
@@ -157,7 +186,7 @@ class ReplayReport:
     inference_ms: dict[str, float] = field(default_factory=dict)
     """the pilot's real compute time per frame (``time.perf_counter``): ``avg, 50%, 90%, 99%, max``."""
     replayed_s: float = 0.0
-    """seconds of recording replayed (first to last scored record, on the replay clock)."""
+    """seconds of recording replayed: the span of the scored records' ``_timestamp_ms`` (whatever the speed)."""
     real_s: float = 0.0
     """wall-clock seconds the replay took."""
     late_ms_max: float = 0.0
@@ -165,6 +194,8 @@ class ReplayReport:
     speed: float | None = None
     """``None``: the virtual clock; else the real-time pace multiple."""
     rows: list[ReplayRow] = field(default_factory=list, repr=False)
+    skipped_records: list[SkippedRecord] = field(default_factory=list, repr=False)
+    """every record counted in ``skipped``, in index order."""
 
     @property
     def skipped_total(self) -> int:
@@ -177,6 +208,7 @@ class ReplayReport:
             "pilot": self.pilot,
             "records": self.records,
             "skipped": dict(self.skipped),
+            "corrupt": [dict(c) for c in self.corrupt],
             "angle_mae": self.angle_mae,
             "throttle_mae": self.throttle_mae,
             "angle_max_err": self.angle_max_err,
@@ -190,24 +222,32 @@ class ReplayReport:
         }
 
     def write_csv(self, path: str | os.PathLike[str]) -> None:
-        """Write one line per scored record (:data:`CSV_COLUMNS`), ``\\n`` line ends."""
+        """Write one line per record in index order (:data:`CSV_COLUMNS`), ``\\n`` line ends: a scored record
+        with its figures and an empty ``skipped``, a skipped one with empty figures and the reason."""
+        lines: list[tuple[int, int, list[str]]] = [(row.index, 0, row.csv_fields()) for row in self.rows]
+        lines += [(-1 if s.index is None else s.index, 1, s.csv_fields()) for s in self.skipped_records]
+        lines.sort(key=lambda t: (t[0], t[1]))
         with open(path, "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(CSV_COLUMNS)
-            for row in self.rows:
-                w.writerow(row.csv_fields())
+            for _, _, fields in lines:
+                w.writerow(fields)
 
     def format_table(self) -> str:
         """A short human-readable summary."""
         skipped = ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items())) or "none"
-        ratio = f" ({self.replayed_s / self.real_s:.0f}x)" if self.real_s > 0 and self.replayed_s > 0 else ""
+        ratio = f" ({_pace(self.replayed_s / self.real_s)})" if self.real_s > 0 and self.replayed_s > 0 else ""
         clock = "virtual clock" if self.speed is None else f"real time x{self.speed:g}"
         lines = [
             f"replay of {self.tub}",
             f"pilot            {self.pilot}",
             f"records          {self.records} scored, {self.skipped_total} skipped ({skipped})",
-            f"replayed         {self.replayed_s:.1f} s of recording in {self.real_s:.2f} s{ratio}, {clock}",
         ]
+        if self.corrupt:
+            shown = ", ".join(f"{c['catalog']} line {c['line']}" for c in self.corrupt[:_CORRUPT_SHOWN])
+            more = len(self.corrupt) - _CORRUPT_SHOWN
+            lines.append(f"corrupt          {shown}" + (f" and {more} more" if more > 0 else ""))
+        lines.append(f"replayed         {self.replayed_s:.1f} s of recording in {self.real_s:.2f} s{ratio}, {clock}")
         if self.records:
             lines += [
                 f"angle MAE        {self.angle_mae:.4f}   max {self.angle_max_err:.4f}"
@@ -221,6 +261,15 @@ class ReplayReport:
 
 
 # ------------------------------------------------------------------------------------------------ parts
+#: corrupt records named in the table (all of them are in the JSON and the CSV)
+_CORRUPT_SHOWN = 5
+
+
+def _pace(ratio: float) -> str:
+    """Seconds of recording per second of replay: ``128x``, ``9.9x``, ``0.50x`` (a slow one must not read 0x)."""
+    return f"{ratio:.{0 if ratio >= 20 else 1 if ratio >= 2 else 2}f}x"
+
+
 class TubPlayer:
     """Emits one playable record per tick, at its recorded time on the runtime clock.
 
@@ -243,13 +292,19 @@ class TubPlayer:
         self._speed = speed
         self._on_end = on_end
         self.skipped: dict[str, int] = {}
+        self.skipped_records: list[SkippedRecord] = []
         self.late_max_s = 0.0
         self._t0: float | None = None  # clock time of the first record played
         self._ts0: float = 0.0
         self._last_at = 0.0
 
-    def _skip(self, reason: str) -> None:
+    def _skip(self, reason: str, rec: Record) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
+        ts = rec.raw.get("_timestamp_ms")
+        index = rec.raw.get("_index")
+        self.skipped_records.append(
+            SkippedRecord(index if isinstance(index, int) else None, ts if _is_number(ts) else None, reason)
+        )
 
     def _next(self) -> tuple[Record, Any, float, float, Any] | None:
         """The next playable record and its values; counts the others."""
@@ -257,22 +312,22 @@ class TubPlayer:
             raw = rec.raw
             ts = raw.get("_timestamp_ms")
             if not _is_number(ts):
-                self._skip("no_timestamp")
+                self._skip("no_timestamp", rec)
                 continue
             ua, ut = raw.get(self._angle_key), raw.get(self._throttle_key)
             if not (_is_number(ua) and _is_number(ut)):
-                self._skip("no_user_values")
+                self._skip("no_user_values", rec)
                 continue
             if raw.get(self._image_key) is None:
-                self._skip("no_image")
+                self._skip("no_image", rec)
                 continue
             try:
                 image = rec[self._image_key]
             except TubError:
-                self._skip("bad_image")
+                self._skip("bad_image", rec)
                 continue
             if not isinstance(image, np.ndarray):
-                self._skip("no_image")
+                self._skip("no_image", rec)
                 continue
             return rec, image, float(ua), float(ut), ts
         return None
@@ -481,14 +536,23 @@ def _build_report(
     player: TubPlayer,
     seconds: list[float],
 ) -> ReplayReport:
+    skipped = dict(player.skipped)
+    skipped_records = list(player.skipped_records)
+    corrupt = tub.corrupt_records()  # complete now: every record has been read
+    if corrupt:
+        skipped["corrupt"] = len(corrupt)
+        skipped_records += [SkippedRecord(i, None, "corrupt", name, line) for i, name, line in corrupt]
+        skipped_records.sort(key=lambda r: -1 if r.index is None else r.index)
     report = ReplayReport(
         tub=str(tub.base_path),
         pilot=pilot_name,
         records=len(rows),
-        skipped=dict(sorted(player.skipped.items())),
+        skipped=dict(sorted(skipped.items())),
+        corrupt=[{"index": i, "catalog": name, "line": line} for i, name, line in corrupt],
         late_ms_max=player.late_max_s * 1e3,
         speed=None if speed is None else float(speed),
         rows=rows,
+        skipped_records=skipped_records,
     )
     if rows:
         ua = np.array([r.user_angle for r in rows], dtype=np.float64)
@@ -501,7 +565,8 @@ def _build_report(
         report.angle_max_err = float(angle_err.max())
         report.throttle_max_err = float(throttle_err.max())
         report.baseline_angle_mae = float(np.abs(ua).mean())
-        report.replayed_s = rows[-1].at_s - rows[0].at_s
+        # recording time, not replay-clock time: with speed=10, 40 s of recording replay in 4 s
+        report.replayed_s = (max(float(r.timestamp_ms) for r in rows) - float(rows[0].timestamp_ms)) / 1000.0
     if seconds:
         ms = np.array(seconds) * 1e3
         p50, p90, p99 = np.percentile(ms, [50, 90, 99])
@@ -542,7 +607,7 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     p.add_argument(
         "--speed",
-        type=_positive_float,
+        type=option(positive_float),
         default=None,
         help="replay in real time at this multiple of the recorded pace (default: the virtual clock, "
         "as fast as the CPU allows)",
@@ -551,16 +616,6 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--angle-key", default="user/angle", help="the recorded angle (default: %(default)s)")
     p.add_argument("--throttle-key", default="user/throttle", help="the recorded throttle (default: %(default)s)")
     return p
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
 
 
 def replay_main(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import asyncdonkey
+from asyncdonkey import cli, options
 
 CLI = [sys.executable, "-m", "asyncdonkey.cli"]
 
@@ -139,6 +140,13 @@ def test_part_failure_exit_code_and_message(tmp_path):
     proc = run_cli("run", str(car), "--max-loops", "3")
     assert proc.returncode == 1
     assert "part 'camera' failed on tick 0: KeyError" in proc.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in proc.stderr
+    verbose = run_cli("run", str(car), "--max-loops", "3", "--verbose")
+    assert verbose.returncode == 1
+    assert "part 'camera' failed on tick 0: KeyError" in verbose.stderr.strip().splitlines()[-1]
+    # the cause's traceback, down to the line of the part that raised
+    assert "Traceback (most recent call last)" in verbose.stderr
+    assert 'raise KeyError("cam/image_array")' in verbose.stderr
 
 
 def test_car_file_with_dataclasses_and_postponed_annotations(tmp_path):
@@ -164,3 +172,76 @@ def test_car_file_with_dataclasses_and_postponed_annotations(tmp_path):
     proc = run_cli("run", str(car), "--max-loops", "2", "--no-uvloop")
     assert proc.returncode == 0, proc.stderr
     assert "loops: 2" in proc.stderr
+
+
+# ------------------------------------------------------------------------------------------- bad values
+def run_main(capsys, *argv: str) -> tuple[int, str]:
+    """``asyncdonkey <argv>`` in this process: (exit status, stderr). Bad values never get as far as driving."""
+    try:
+        status = cli.main(list(argv))
+    except SystemExit as exc:
+        status = exc.code
+    return status, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("args", "fragments"),
+    [
+        (["--hz", "inf"], ["argument --hz", "expected a finite number > 0", "'inf'"]),
+        (["--hz", "abc"], ["argument --hz", "expected a finite number > 0", "'abc'"]),
+        (["--hz", "0"], ["argument --hz", "expected a finite number > 0"]),
+        (["--duration", "nan"], ["argument --duration", "expected a finite number > 0", "'nan'"]),
+        (["--duration", "-2"], ["argument --duration", "expected a finite number > 0"]),
+        (["--max-loops", "1.5"], ["argument --max-loops", "expected a whole number >= 0", "'1.5'"]),
+        (["--max-loops", "-1"], ["argument --max-loops", "expected a whole number >= 0"]),
+    ],
+)
+def test_bad_run_options_are_one_line_naming_the_option(tmp_path, capsys, args, fragments):
+    car = write(tmp_path, "car.py", "from asyncdonkey import Vehicle\ndef build():\n    return Vehicle()\n")
+    status, err = run_main(capsys, "run", str(car), *args)
+    assert status == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err and "_positive_float" not in err
+    for f in fragments:
+        assert f in err, err
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [('"fast"', "'fast'"), ("float('inf')", "inf"), ("0", "0"), ("-20", "-20"), ("None", "None"), ("True", "True")],
+)
+def test_bad_drive_loop_hz_in_the_car_file_is_one_line(tmp_path, capsys, value, shown):
+    car = write(
+        tmp_path,
+        "car.py",
+        f"from asyncdonkey import Vehicle\nDRIVE_LOOP_HZ = {value}\ndef build():\n    return Vehicle()\n",
+    )
+    status, err = run_main(capsys, "run", str(car), "--max-loops", "1")
+    assert status == 2
+    line = err.strip()
+    assert len(line.splitlines()) == 1 and "Traceback" not in line, err
+    assert "car.py: DRIVE_LOOP_HZ: expected a finite number > 0" in line and shown in line
+
+
+def test_replay_speed_is_checked_by_the_same_rule(tmp_path, capsys):
+    for bad in ("inf", "abc", "0"):
+        status, err = run_main(capsys, "replay", str(tmp_path), "--pilot", "m.onnx", "--speed", bad)
+        assert status == 2
+        assert err.strip().splitlines() == [
+            f"asyncdonkey replay: error: argument --speed: expected a finite number > 0, got '{bad}' "
+            "(see asyncdonkey replay --help)"
+        ]
+
+
+def test_the_option_checks_accept_what_they_should():
+    assert options.positive_float("20") == 20.0 and options.positive_float(0.5) == 0.5
+    assert options.non_negative_float("0") == 0.0 and options.non_negative_int(" 3 ") == 3
+    for check, bad in [
+        (options.positive_float, "1e400"),  # overflows to inf
+        (options.non_negative_float, "-0.1"),
+        (options.non_negative_int, "3.0"),
+        (options.non_negative_int, 2.0),
+        (options.non_negative_int, False),
+    ]:
+        with pytest.raises(options.BadValue, match="expected"):
+            check(bad)

@@ -67,3 +67,34 @@ def test_car_options_and_their_errors(tmp_path):
     v = car_py.build(["--pilot", "user", "--quiet"])
     names = [e.name for e in v.parts]
     assert names == ["SimCamera", "SimTelemetry", "SimController", "DriveMode", "SimCar", "Status"]
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_laps_option_drives_until_that_many_laps_past_the_default_time():
+    v = car_py.build(["--pilot", "user", "--laps", "2", "--quiet"])
+    status = next(e.part for e in v.parts if e.name == "Status")
+    report = await v.run(rate_hz=20, max_loop_count=20 * 200)
+    assert report.stop_reason == "stop()"
+    assert status.laps == 2
+    assert report.loops / 20 > car_py.DEFAULT_SECONDS  # two laps take longer than the default drive
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_seconds_given_explicitly_still_limits_a_laps_drive():
+    v = car_py.build(["--pilot", "user", "--laps", "2", "--seconds", "3", "--quiet"])
+    report = await v.run(rate_hz=20, max_loop_count=20 * 200)
+    assert report.stop_reason == "stop()" and report.loops == 61  # 3 s, before the first lap
+
+
+def test_car_option_defaults_and_bad_values(capsys):
+    assert car_py.parse_args([]).seconds == car_py.DEFAULT_SECONDS
+    assert car_py.parse_args(["--laps", "3"]).seconds == 0.0  # no time limit
+    assert car_py.parse_args(["--laps", "3", "--seconds", "90"]).seconds == 90.0
+    for bad in (["--laps", "-1"], ["--laps", "1.5"], ["--seconds", "inf"], ["--seconds", "-3"]):
+        with pytest.raises(SystemExit) as exc:
+            car_py.parse_args(bad)
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert f"argument {bad[0]}: expected" in err and repr(bad[1]) in err

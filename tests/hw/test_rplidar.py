@@ -17,6 +17,8 @@ from asyncdonkey.hw.rplidar import (
     CMD_RESET,
     CMD_SCAN,
     CMD_STOP,
+    MAX_REVOLUTION_NODES,
+    MIN_REVOLUTION_NODES,
     DeviceInfo,
     Health,
     RPLidarDriver,
@@ -153,7 +155,7 @@ def test_partial_revolution_before_the_first_start_flag_is_discarded():
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(min_value=1, max_value=64), min_size=1, max_size=40))
 def test_decoding_does_not_depend_on_chunk_boundaries(cuts):
-    _, data = _model_bytes(2, points=40)
+    _, data = _model_bytes(2, points=60)
     ref: list = []
     _scanning_protocol(ref).data_received(data)
     got: list = []
@@ -268,3 +270,107 @@ def test_unplug_and_replug_resumes_scanning():
             await asyncio.wait_for(task, 1)
 
     run(body())
+
+
+# --------------------------------------------------------------------------- noise and lost start flags
+def test_a_revolution_without_end_is_bounded_and_dropped():
+    peer = RPLidarPeer(points_per_scan=200)
+    valid = b"".join(peer.encode_node(k == 0, *peer.node_values(k)[1:]) for k in range(20_000))
+    peer.close()
+    scans: list = []
+    proto = _scanning_protocol(scans)
+    most = 0
+    for i in range(0, len(valid), 4096):  # the serial port hands the bytes over in chunks
+        proto.data_received(valid[i : i + 4096])
+        most = max(most, proto.pending_nodes)
+    assert 7000 < most <= MAX_REVOLUTION_NODES  # never more nodes kept than a revolution can have
+    # node 8,001 overflowed: the revolution was dropped, and what follows is ignored until a start flag
+    assert scans == [] and proto.overlong_revolutions == 1
+    assert proto.dropped_nodes == MAX_REVOLUTION_NODES + 1 and proto.pending_nodes == 0
+    one = b"".join(peer.encode_node(*peer.node_values(k)) for k in range(201))
+    proto.data_received(one)  # start flags again: back in step, the next revolution is published
+    assert [len(s) for s in scans] == [200] and proto.pending_nodes == 1
+
+
+def test_line_noise_is_counted_not_published():
+    rng = np.random.default_rng(7)
+    scans: list = []
+    proto = _scanning_protocol(scans)
+    proto.data_received(rng.integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+    assert scans == []  # old decoders published thousands of few-node "scans" here
+    assert proto.short_revolutions > 1000 and proto.desyncs > 1000 and proto.bad_nodes > 0
+    assert proto.pending_nodes < MIN_REVOLUTION_NODES
+    stats = proto.stats()
+    assert stats["short_revolutions"] == proto.short_revolutions and stats["scans"] == 0
+
+
+async def sleep_until(cond, step: float = 0.05, limit: float = 60.0) -> None:
+    """Virtual-clock wait for ``cond`` (at most ``limit`` virtual seconds)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + limit
+    while not cond():
+        assert loop.time() < deadline, "condition not met"
+        await asyncio.sleep(step)
+
+
+def lidar_driver(peer: RPLidarPeer) -> RPLidarDriver:
+    # on the virtual clock a request reaches the model after the pty worker runs: generous answer times
+    return RPLidarDriver(peer.path, response_timeout_s=100.0, watchdog_s=100.0)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_model_without_start_flags_keeps_memory_bounded_and_recovers(caplog):
+    with RPLidarPeer(points_per_scan=200, scan_hz=10.0) as peer:  # 2,000 nodes/s
+        driver = lidar_driver(peer)
+        task = asyncio.create_task(driver.run())
+        await sleep_until(lambda: driver.latest.sample is not None)
+        peer.set_fault("no_start_flag")
+        await asyncio.sleep(0.2)  # the revolution under way when the fault began still completes
+        seq, sent = driver.latest.sample.seq, peer.nodes_sent
+        most = 0
+        for _ in range(120):  # 12 s: 24,000 nodes with no start flag
+            await asyncio.sleep(0.1)
+            most = max(most, driver.protocol.pending_nodes)
+        assert peer.nodes_sent - sent >= 24_000
+        assert most <= MAX_REVOLUTION_NODES
+        assert driver.latest.sample.seq == seq  # nothing published from the endless revolution
+        stats = driver.stats()
+        assert stats["overlong_revolutions"] == 1 and stats["dropped_nodes"] > MAX_REVOLUTION_NODES
+        assert stats["restarts"] == 0  # nodes kept coming: not a stalled scan
+        assert [r.getMessage() for r in caplog.records if "without a start flag" in r.getMessage()] == [
+            f"RPLidar {peer.path!r}: dropped a revolution of over 8000 nodes without a start flag (lost start flags?)"
+        ]
+        peer.set_fault(None)
+        await sleep_until(lambda: driver.latest.sample.seq >= seq + 2)
+        assert len(driver.latest.value) == 200
+        await driver.close()
+        await asyncio.wait_for(task, 10)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_model_sending_noise_publishes_nothing_and_logs_rate_limited(caplog):
+    with RPLidarPeer(points_per_scan=200, scan_hz=10.0, noise_seed=3) as peer:
+        driver = lidar_driver(peer)
+        task = asyncio.create_task(driver.run())
+        await sleep_until(lambda: driver.latest.sample is not None)
+        peer.set_fault("noise")
+        await asyncio.sleep(0.2)
+        seq = driver.latest.sample.seq
+        most = 0
+        for _ in range(100):  # 10 s of noise: 100 kB
+            await asyncio.sleep(0.1)
+            most = max(most, driver.protocol.pending_nodes)
+        assert driver.latest.sample.seq == seq
+        stats = driver.stats()
+        assert stats["short_revolutions"] > 500 and stats["desyncs"] > 500 and stats["bad_nodes"] > 0
+        assert most < MIN_REVOLUTION_NODES
+        short_logs = [r for r in caplog.records if "fewer than" in r.getMessage()]
+        assert 1 <= len(short_logs) <= 3
+        assert "more since the last report" in short_logs[-1].getMessage() or len(short_logs) == 1
+        peer.set_fault(None)
+        await sleep_until(lambda: driver.latest.sample.seq >= seq + 2)
+        assert len(driver.latest.value) == 200
+        await driver.close()
+        await asyncio.wait_for(task, 10)

@@ -63,6 +63,8 @@ async def test_dist_array_is_donkeycars_channel_done_right():
         # no scan ever made a tick late: on the virtual clock every tick started on its deadline
         assert report.overruns == 0 and report.lateness_ms["max"] == 0.0
         assert lidar.driver.protocol.bad_nodes == 0
+        stats = lidar.stats()
+        assert stats["scans"] == scan.index and stats["short_revolutions"] == stats["overlong_revolutions"] == 0
 
 
 @pytest.mark.asyncio

@@ -15,9 +15,23 @@ Protocol (Slamtec's serial protocol as the A1 speaks it, 115200 8N1):
 
 Decoding: a node failing the ``S̄``/``C`` checks (or with an angle ≥ 360°) means the byte stream is
 misaligned (a dropped byte, line noise, the reset banner): the decoder slides one byte and tries again,
-counting ``bad_nodes`` and ``resync_bytes``. A revolution is complete when the next ``S`` node arrives; it is
-published as a :class:`Scan` of numpy arrays into :attr:`RPLidarDriver.latest`, so readers take the newest
-complete scan without waiting. The partial revolution before the first ``S`` is discarded.
+counting ``bad_nodes`` and ``resync_bytes`` (and ``desyncs``, the times it lost alignment). A revolution is
+complete when the next ``S`` node arrives; it is published as a :class:`Scan` of numpy arrays into
+:attr:`RPLidarDriver.latest`, so readers take the newest complete scan without waiting. The partial revolution
+before the first ``S`` is discarded.
+
+What a revolution can hold, and what is noise. An RPLidar A1 measures at most 8,000 samples/s and turns at
+1 Hz at the slowest (A1M8 datasheet: 4,000 typical, 8,000 max; 1 to 10 Hz); the A2 and A3 (up to 16,000
+samples/s, 5 Hz and faster) stay under 3,200. So a real revolution never holds more than
+:data:`MAX_REVOLUTION_NODES` = 8,000 nodes: one that grows past it (a stream whose start flags are lost, a
+stuck firmware) is dropped and counted in ``overlong_revolutions``, and the decoder waits for the next ``S``,
+so it never keeps more than 8,000 nodes (RSS stays flat instead of growing by about 85 bytes a node). At the
+other end, the standard SCAN measures at least 2,000 samples/s and no model turns faster than 20 Hz, so a real
+revolution has at least 100 nodes; line noise that happens to pass the node checks makes "revolutions" of a
+handful of nodes (half of the random nodes carry a start flag). A revolution under
+:data:`MIN_REVOLUTION_NODES` = 50 (half the fewest real ones, for margin) is dropped and counted in
+``short_revolutions``. The nodes dropped either way are counted in ``dropped_nodes``; both kinds are logged
+at most once every 5 s with the count held back, and :meth:`RPLidarProtocol.stats` has every counter.
 
 Motor: the A1's USB adapter drives the motor from DTR (DTR low = spinning); the driver lowers DTR when it
 connects and raises it on close where the port supports modem lines (a pty does not; that is ignored).
@@ -30,6 +44,7 @@ import contextlib
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -47,6 +62,8 @@ __all__ = [
     "CMD_SCAN",
     "CMD_STOP",
     "HEALTH_STATUS",
+    "MAX_REVOLUTION_NODES",
+    "MIN_REVOLUTION_NODES",
     "DeviceInfo",
     "Health",
     "Node",
@@ -81,6 +98,11 @@ MODE_MULTI = 1
 
 HEALTH_STATUS = {0: "good", 1: "warning", 2: "error"}
 _MAX_ANGLE_Q6 = 360 * 64
+
+#: The most nodes a real revolution holds: 8,000 samples/s (the A1's maximum) at 1 Hz (its slowest rotation).
+MAX_REVOLUTION_NODES = 8000
+#: Fewer nodes than this is not a revolution but noise: real ones have at least 100 (2,000 samples/s at 20 Hz).
+MIN_REVOLUTION_NODES = 50
 
 
 class RPLidarError(RuntimeError):
@@ -192,11 +214,30 @@ class RPLidarProtocol:
 
     States: *idle* (bytes are garbage: counted, dropped), *awaiting a descriptor* (hunt for ``A5 5A``, then
     the response of the announced length), *scanning* (5-byte nodes with resynchronisation).
+
+    ``min_nodes`` / ``max_nodes``: revolutions with fewer nodes are dropped as noise, revolutions growing past
+    ``max_nodes`` are dropped as over-long (see the module docstring for the defaults); ``name`` is used in
+    the log.
     """
 
-    def __init__(self, on_scan: Callable[[Scan], None], now: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        on_scan: Callable[[Scan], None],
+        now: Callable[[], float],
+        *,
+        min_nodes: int = MIN_REVOLUTION_NODES,
+        max_nodes: int = MAX_REVOLUTION_NODES,
+        name: str = "rplidar",
+    ) -> None:
+        if not 1 <= min_nodes <= max_nodes:
+            raise ValueError(f"RPLidarProtocol: need 1 <= min_nodes <= max_nodes, got {min_nodes}, {max_nodes}")
         self._on_scan = on_scan
         self._now = now
+        self.min_nodes = int(min_nodes)
+        self.max_nodes = int(max_nodes)
+        self.name = name
+        self._log = LogThrottle(5.0)
+        self._synced = True
         self._buf = bytearray()
         self._expect: tuple[int, asyncio.Future[bytes]] | None = None
         self._descriptor: Descriptor | None = None
@@ -211,6 +252,31 @@ class RPLidarProtocol:
         self.resync_bytes = 0
         self.garbage_bytes = 0
         self.unexpected_descriptors = 0
+        self.desyncs = 0
+        self.short_revolutions = 0
+        self.overlong_revolutions = 0
+        self.dropped_nodes = 0
+
+    @property
+    def pending_nodes(self) -> int:
+        """Nodes of the revolution being received (never more than ``max_nodes``)."""
+        return len(self._angles)
+
+    def stats(self) -> dict[str, int]:
+        """Every counter, plus ``pending_nodes``, as a dict (for reports and logs)."""
+        return {
+            "scans": self.scans,
+            "nodes": self.nodes,
+            "bad_nodes": self.bad_nodes,
+            "resync_bytes": self.resync_bytes,
+            "desyncs": self.desyncs,
+            "short_revolutions": self.short_revolutions,
+            "overlong_revolutions": self.overlong_revolutions,
+            "dropped_nodes": self.dropped_nodes,
+            "pending_nodes": self.pending_nodes,
+            "garbage_bytes": self.garbage_bytes,
+            "unexpected_descriptors": self.unexpected_descriptors,
+        }
 
     # ----------------------------------------------------------------------------------------- control
     def expect(self, data_type: int, future: asyncio.Future[bytes]) -> None:
@@ -303,25 +369,68 @@ class RPLidarProtocol:
         n = len(buf)
         i = 0
         angles, dists, quals = self._angles, self._dists, self._quals
+        max_nodes = self.max_nodes
         while n - i >= 5:
             b0, b1, b2 = buf[i], buf[i + 1], buf[i + 2]
             if not (((b0 ^ (b0 >> 1)) & 1) == 1 and (b1 & 1) == 1 and ((b1 >> 1) | (b2 << 7)) < _MAX_ANGLE_Q6):
                 self.bad_nodes += 1
                 self.resync_bytes += 1
+                if self._synced:
+                    self._synced = False
+                    self.desyncs += 1
                 i += 1
                 continue
+            self._synced = True
             if b0 & 1:
                 if self._in_revolution and angles:
-                    self._publish()
+                    self._complete()
                 self._in_revolution = True
             if self._in_revolution:
-                angles.append((b1 >> 1) | (b2 << 7))
-                dists.append(buf[i + 3] | (buf[i + 4] << 8))
-                quals.append(b0 >> 2)
+                if len(angles) >= max_nodes:
+                    self._drop_overlong()  # wait for the next start flag; this node is dropped with the rest
+                else:
+                    angles.append((b1 >> 1) | (b2 << 7))
+                    dists.append(buf[i + 3] | (buf[i + 4] << 8))
+                    quals.append(b0 >> 2)
             self.nodes += 1
             i += 5
         if i:
             del buf[:i]
+
+    def _complete(self) -> None:
+        """A start flag ended the revolution: publish it, or drop it as noise when too short."""
+        count = len(self._angles)
+        if count >= self.min_nodes:
+            self._publish()
+            return
+        self.short_revolutions += 1
+        self.dropped_nodes += count
+        self._angles.clear()
+        self._dists.clear()
+        self._quals.clear()
+        self._warn(
+            "short",
+            "dropped a revolution of %d node(s), fewer than %d (line noise?)",
+            count,
+            self.min_nodes,
+        )
+
+    def _drop_overlong(self) -> None:
+        self.overlong_revolutions += 1
+        self.dropped_nodes += len(self._angles) + 1
+        self._reset_revolution()
+        self._warn(
+            "overlong",
+            "dropped a revolution of over %d nodes without a start flag (lost start flags?)",
+            self.max_nodes,
+        )
+
+    def _warn(self, key: str, message: str, *args: object) -> None:
+        if not self._log.allow(key, self._now()):
+            return
+        held = self._log.take_suppressed(key)
+        more = f" [and {held} more since the last report]" if held else ""
+        logger.warning("RPLidar %r: " + message + more, self.name, *args)
 
     def _publish(self) -> None:
         self.scans += 1
@@ -368,7 +477,7 @@ class RPLidarDriver:
         self.latest: Latest[Scan] = Latest()
         self.on_scan = on_scan
         self._clock_now: Callable[[], float] = lambda: 0.0
-        self.protocol = RPLidarProtocol(self._scan_done, lambda: self._clock_now())
+        self.protocol = RPLidarProtocol(self._scan_done, lambda: self._clock_now(), name=port)
         self.port = SerialPort(port, baudrate, receiver=self, name="rplidar")
         self.response_timeout_s = float(response_timeout_s)
         self.watchdog_s = float(watchdog_s)
@@ -396,6 +505,15 @@ class RPLidarDriver:
         self.protocol.connection_lost(exc)
         if self._conn_changed is not None:
             self._conn_changed.set()
+
+    def stats(self) -> dict[str, Any]:
+        """The decoder's counters (:meth:`RPLidarProtocol.stats`) and the driver's own, as one dict."""
+        return {
+            **self.protocol.stats(),
+            "restarts": self.restarts,
+            "session_failures": self.session_failures,
+            "resets_sent": self.resets_sent,
+        }
 
     def _scan_done(self, scan: Scan) -> None:
         self.latest.publish(scan, scan.timestamp)

@@ -19,6 +19,9 @@ Outputs (chosen at construction, ``output=``):
 * ``"scan"``: the :class:`~asyncdonkey.hw.rplidar.Scan` itself (arrays plus timestamp and index).
 
 Angles are the lidar's own: degrees growing clockwise seen from above, 0 at the lidar's front mark.
+
+Only real revolutions are published: the driver drops line noise (revolutions of a few nodes) and revolutions
+that never end (lost start flags) and counts them; :meth:`RPLidar.stats` returns every counter.
 """
 
 from __future__ import annotations
@@ -82,6 +85,10 @@ class RPLidar:
     @classmethod
     def from_config(cls, cfg: Any, port: str = "/dev/ttyUSB0") -> RPLidar:
         return cls(getattr(cfg, "LIDAR_LOWER_LIMIT", 0), getattr(cfg, "LIDAR_UPPER_LIMIT", 360), port=port)
+
+    def stats(self) -> dict[str, Any]:
+        """The driver's counters (:meth:`~asyncdonkey.hw.rplidar.RPLidarDriver.stats`): scans, noise, restarts."""
+        return self.driver.stats()
 
     async def update(self) -> None:
         await self.driver.run()

@@ -9,15 +9,29 @@ Opt in per test, class or module, together with pytest-asyncio's own marker::
 or ask for the ``virtual_clock`` fixture (it returns the running :class:`VirtualClockLoop`), or select the
 factory by name: ``@pytest.mark.asyncio(loop_factories=["virtual_clock"])``.
 
-Loop selection uses pytest-asyncio's ``pytest_asyncio_loop_factories`` hook (pytest-asyncio ≥ 1.4). The hook is
-declared ``optionalhook=True`` so this plugin loads harmlessly where pytest-asyncio is absent. Tests that did
-not opt in get a single factory that asks the current event loop policy for a new loop, which is what
-pytest-asyncio would have done, so installing asyncdonkey changes nothing for them.
+Loop selection uses pytest-asyncio's ``pytest_asyncio_loop_factories`` hook (pytest-asyncio ≥ 1.4). Installing
+asyncdonkey must change nothing for the tests of other projects, yet pytest-asyncio calls that hook for every
+asyncio test as soon as any plugin implements it, takes the first answer (``firstresult``), and skips a test
+whose ``loop_factories`` names a factory missing from that answer. An ordinary implementation would therefore
+answer for other projects' tests (and, called before their own implementation, hide its factories: a
+``loop_factories=["uvloop"]`` test was skipped). So this plugin's implementation is a *wrapper* around all the
+others:
+
+* a test that did not opt in gets the other implementations' answer untouched. Only when no other
+  implementation exists is there nothing to pass on; then it answers ``{"asyncio": <the policy's new loop>}``,
+  the loop pytest-asyncio makes without any hook, and a ``loop_factories`` selection fails as it would with
+  no hook at all;
+* a test that opted in by the marker or the fixture (and named no factories) gets only ``virtual_clock``;
+* a test whose ``loop_factories`` names ``virtual_clock`` gets the others' factories plus ``virtual_clock``
+  (plus ``asyncio`` when there are no others), so it can run on several loops.
+
+The hook is declared ``optionalhook=True`` so this plugin loads harmlessly where pytest-asyncio is absent.
 """
 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Generator, Mapping
 from typing import Any
 
 import pytest
@@ -40,14 +54,22 @@ def _policy_loop() -> asyncio.AbstractEventLoop:
     return asyncio.get_event_loop_policy().new_event_loop()
 
 
-def _wants_virtual(item: pytest.Item) -> bool:
-    if item.get_closest_marker("virtual_clock") is not None:
-        return True
-    return FACTORY_NAME in getattr(item, "fixturenames", ())
+def _selected(item: pytest.Item) -> list[str] | None:
+    """The factory names the test's ``asyncio`` marker selects (``loop_factories``), or ``None``."""
+    marker = item.get_closest_marker("asyncio")
+    names = marker.kwargs.get("loop_factories") if marker is not None else None
+    if names is None or isinstance(names, str):
+        return None if names is None else [names]
+    return list(names)
 
 
-@pytest.hookimpl(optionalhook=True)
-def pytest_asyncio_loop_factories(config: pytest.Config, item: pytest.Item) -> dict[str, Any]:
+def _others_implement(item: pytest.Item) -> bool:
+    """Whether a plugin other than this one answers the hook for ``item`` (wrappers do not answer)."""
+    impls = item.ihook.pytest_asyncio_loop_factories.get_hookimpls()
+    return any(not (impl.wrapper or impl.hookwrapper) for impl in impls)
+
+
+def _virtual_factory(item: pytest.Item) -> Any:
     marker = item.get_closest_marker("virtual_clock")
     kwargs = dict(marker.kwargs) if marker is not None else {}
     backend = kwargs.pop("backend", "asyncio")
@@ -56,13 +78,37 @@ def pytest_asyncio_loop_factories(config: pytest.Config, item: pytest.Item) -> d
             virtual_loop_factory(backend)
         except VirtualClockError as exc:
             raise pytest.UsageError(f"{item.nodeid}: {exc}") from None
-    virtual = virtual_loop_factory(**kwargs)
-    asyncio_marker = item.get_closest_marker("asyncio")
-    selected = asyncio_marker.kwargs.get("loop_factories") if asyncio_marker is not None else None
+    return virtual_loop_factory(**kwargs)
+
+
+@pytest.hookimpl(wrapper=True, optionalhook=True)
+def pytest_asyncio_loop_factories(
+    config: pytest.Config, item: pytest.Item
+) -> Generator[None, Mapping[str, Any] | None, Mapping[str, Any] | None]:
+    answer = yield
+    selected = _selected(item)
+    by_marker = item.get_closest_marker("virtual_clock") is not None
+    by_fixture = FACTORY_NAME in getattr(item, "fixturenames", ())
+    if selected is not None and FACTORY_NAME in selected:
+        factories = dict(answer) if answer else {_DEFAULT_NAME: _policy_loop}
+        factories[FACTORY_NAME] = _virtual_factory(item)
+        return factories
+    if selected is None and (by_marker or by_fixture):
+        return {FACTORY_NAME: _virtual_factory(item)}
+    if by_marker:
+        raise pytest.UsageError(
+            f"{item.nodeid}: marked virtual_clock, but its asyncio marker's loop_factories {selected} do not "
+            f"name {FACTORY_NAME!r}"
+        )
+    # not ours: whatever the project's own implementations said, untouched
+    if answer is not None or _others_implement(item):
+        return answer
     if selected is not None:
-        return {FACTORY_NAME: virtual, _DEFAULT_NAME: _policy_loop}
-    if _wants_virtual(item):
-        return {FACTORY_NAME: virtual}
+        pytest.fail(
+            f"{item.nodeid}: mark.asyncio 'loop_factories' {selected} needs a pytest_asyncio_loop_factories hook "
+            f"implementation that provides them (asyncdonkey's plugin provides only {FACTORY_NAME!r})",
+            pytrace=False,
+        )
     return {_DEFAULT_NAME: _policy_loop}
 
 

@@ -41,6 +41,7 @@ import datetime as _dt
 import fcntl
 import math
 import os
+import random
 import re
 import shutil
 import struct
@@ -628,7 +629,13 @@ class RPLidarPeer(PtyPeer):
     counter-clockwise). RPLidar angles grow clockwise seen from above; node ``k`` of a revolution is at
     ``k * 360 / points_per_scan`` degrees plus ``angle_offset_deg``. Every ``invalid_every``-th point is
     reported as no return (distance 0, quality 0).
+
+    Faults, while scanning, at the same byte rate: :meth:`set_fault` ``"no_start_flag"`` (valid nodes whose
+    start flag is never set: a revolution that never ends), ``"noise"`` (random bytes from a seeded generator,
+    ``noise_seed``: line noise in place of the nodes), ``None`` (back to normal); :meth:`stall` stops sending.
     """
+
+    FAULTS = (None, "no_start_flag", "noise")
 
     #: the A1's standard scan descriptor, and the others it answers with
     SCAN_DESCRIPTOR = bytes.fromhex("a55a0500004081")
@@ -654,6 +661,7 @@ class RPLidarPeer(PtyPeer):
         hardware: int = 7,
         serial_number: bytes = bytes(range(16)),
         health: tuple[int, int] = (0, 0),
+        noise_seed: int = 0,
         link_dir: str | None = None,
     ) -> None:
         if len(serial_number) != 16:
@@ -681,9 +689,12 @@ class RPLidarPeer(PtyPeer):
         self._t_scan0 = 0.0
         #: (cmd, payload) of every request received, across plugs
         self.requests: list[tuple[int, bytes]] = []
-        #: measurement nodes sent since the model was made
+        #: measurement nodes sent since the model was made (node-sized slots of noise included)
         self.nodes_sent = 0
         self.revolutions_started = 0
+        #: the fault being simulated (one of :attr:`FAULTS`)
+        self.fault: str | None = None
+        self._noise = random.Random(noise_seed)
 
     # ----------------------------------------------------------------------------------------- the room
     def true_distance_mm(self, angle_deg: float) -> float:
@@ -738,6 +749,12 @@ class RPLidarPeer(PtyPeer):
     def inject(self, data: bytes) -> None:
         """Send raw bytes (line noise, a partial node) as they are."""
         self.send(data)
+
+    def set_fault(self, fault: str | None) -> None:
+        """From the next burst on: ``"no_start_flag"``, ``"noise"`` or ``None`` (see the class docstring)."""
+        if fault not in self.FAULTS:
+            raise ValueError(f"RPLidarPeer: fault must be one of {self.FAULTS}, got {fault!r}")
+        self.fault = fault
 
     def stall(self) -> None:
         """Fault: stop sending measurements without being told to (the motor stalled, the firmware hung)."""
@@ -820,11 +837,16 @@ class RPLidarPeer(PtyPeer):
         rate = self.scan_hz * self.points_per_scan
         due = math.floor((when - self._t_scan0) * rate + 1e-9) + 1
         out = bytearray()
+        fault = self.fault
         while self._next_node < due:
-            start, q, a, d = self.node_values(self._next_node)
-            if start:
-                self.revolutions_started += 1
-            out += self.encode_node(start, q, a, d)
+            if fault == "noise":
+                out += self._noise.randbytes(5)
+            else:
+                start, q, a, d = self.node_values(self._next_node)
+                start = start and fault != "no_start_flag"
+                if start:
+                    self.revolutions_started += 1
+                out += self.encode_node(start, q, a, d)
             self._next_node += 1
         self.nodes_sent += len(out) // 5
         if out:

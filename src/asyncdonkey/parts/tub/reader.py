@@ -176,6 +176,21 @@ class Tub:
             out.extend(start + i for i in range(s.lines) if i not in corrupt and start + i not in deleted)
         return out
 
+    def corrupt_records(self, include_deleted: bool = False) -> list[tuple[int, str, int]]:
+        """``(index, catalog file name, line number from 1)`` of each corrupt line found so far, in index order.
+
+        Lines that do not look like a record are found when the tub is opened; a line that looks like one but
+        is not valid JSON is found when it is read (iterate the records first for the complete list).
+        Deleted records are left out unless ``include_deleted``.
+        """
+        deleted = () if include_deleted else self._manifest.deleted_indexes
+        return [
+            (s.start_index + i, s.name, i + 1)
+            for s in self._scans
+            for i in sorted(s.corrupt)
+            if s.start_index + i not in deleted
+        ]
+
     def __len__(self) -> int:
         deleted = self._manifest.deleted_indexes
         n = 0

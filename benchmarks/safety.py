@@ -32,11 +32,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "examples"))
 sys.path.insert(0, str(ROOT / "tests" / "safety"))
 
-from machine_info import describe  # noqa: E402
-
 from asyncdonkey import Memory, Vehicle  # noqa: E402
 from asyncdonkey.loop import run_blocking  # noqa: E402
 from asyncdonkey.plan import build_entry  # noqa: E402
+from machine_info import describe  # noqa: E402
 
 WINDOW_S = 0.25
 NEUTRAL = 370

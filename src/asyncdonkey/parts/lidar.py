@@ -77,6 +77,8 @@ class RPLidar:
         self.output = output
         self._convert = convert[output]
         self._value: Any = _EMPTY if output == "dist_array" else None
+        self._scan_time: float | None = None
+        self._origin: float | None = None
         self.driver = driver if driver is not None else RPLidarDriver(port, baudrate)
         self.driver.on_scan = self._on_scan
         #: the newest complete scan (``None`` before the first)
@@ -94,10 +96,16 @@ class RPLidar:
         await self.driver.run()
 
     def run(self) -> Any:
+        self._origin = self._scan_time
         return self._value
 
     def run_threaded(self) -> Any:
+        self._origin = self._scan_time
         return self._value
+
+    def output_origin(self) -> float | None:
+        """When the revolution behind the value ``run()`` returned completed (``None`` before the first)."""
+        return self._origin
 
     async def shutdown(self) -> None:
         await self.driver.close()
@@ -105,6 +113,7 @@ class RPLidar:
     def _on_scan(self, scan: Scan) -> None:
         self.scan = scan
         self._value = self._convert(scan)
+        self._scan_time = scan.timestamp
 
     def _dist_array(self, scan: Scan) -> np.ndarray:
         a = scan.angles

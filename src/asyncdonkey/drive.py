@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 from .clock import Clock
 from .errors import PartError
 from .memory import Memory
+from .pipeline import after_store, build_pipelines
 from .plan import Entry
 from .profiler import Profiler
 from .ratelimit import LogThrottle
@@ -95,6 +96,10 @@ class Drive:
         for e in entries:
             e.errors = 0
             e.series = profiler.series_for(e.name)
+        # pipelined parts (asyncdonkey.pipeline): the tick calls their kickers in their place
+        self.push_sources: list[tuple[Entry, Any]] = []
+        self._unsubscribe: list[Any] = []
+        self.tick_entries, self.pipelines = build_pipelines(self)
 
     # ----------------------------------------------------------------------------------------- executor
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:
@@ -138,6 +143,11 @@ class Drive:
 
     # ------------------------------------------------------------------------------------- background
     def start_background(self) -> None:
+        for p in self.pipelines:
+            p.task = self.loop.create_task(p.main(), name=f"pipelined:{p.name}")
+            self.tasks.append((p.entry, p.task))
+        for e, subscribe in self.push_sources:
+            self._unsubscribe.append(subscribe(lambda value, origin, e=e: self._push_threadsafe(e, value, origin)))
         for e in self.entries:
             if e.threaded == "thread":
                 t = threading.Thread(target=self._thread_main, args=(e,), name=f"part:{e.name}", daemon=True)
@@ -147,6 +157,29 @@ class Drive:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
                 task.add_done_callback(lambda t, e=e: self._task_done(e, t))
                 self.tasks.append((e, task))
+
+    def _push_threadsafe(self, e: Entry, value: Any, origin: float) -> None:
+        try:
+            self.loop.call_soon_threadsafe(self._pushed, e, value, origin)
+        except RuntimeError:  # the loop has closed: the drive is over
+            pass
+
+    def _pushed(self, e: Entry, value: Any, origin: float) -> None:
+        """A push source has a new value: into Memory now (not at the next tick), then start its pipelines."""
+        if not self.on:
+            return
+        k = e.outputs[0]
+        mem = self.mem
+        mem.d[k] = value
+        mem.stamps[k] = self.clock.now()
+        mem.origins[k] = origin
+        after_store(e, mem.origins)
+
+    def unsubscribe_push_sources(self) -> None:
+        for unsubscribe in self._unsubscribe:
+            if callable(unsubscribe):
+                unsubscribe()
+        self._unsubscribe.clear()
 
     def _thread_main(self, e: Entry) -> None:
         try:
@@ -191,7 +224,7 @@ class Drive:
         clock = self.clock
         now = clock.now
         period = 1.0 / rate_hz
-        entries = self.entries
+        entries = self.tick_entries
         d = self.mem.d
         origins = self.mem.origins
         dormant = self.mem.dormant
@@ -249,6 +282,8 @@ class Drive:
                     t_end = now()
                     if r is not None and e.store is not None:
                         e.store(r, args, t_end)
+                        if e.kicks:
+                            after_store(e, origins)
                 except asyncio.CancelledError:
                     if not self._grace_cancel:
                         raise
@@ -347,6 +382,7 @@ class Drive:
         if self.longest_block is not None:
             r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
         r.shutdown_abandoned = list(self.abandoned)
+        r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
 
 

@@ -8,6 +8,7 @@ under the GIL, so readers in other threads never see a value paired with the wro
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -32,16 +33,29 @@ class Sample(Generic[T]):
 class Latest(Generic[T]):
     """Holds the newest :class:`Sample` of a stream. Readers never block; staleness is measurable."""
 
-    __slots__ = ("sample",)
+    __slots__ = ("_subscribers", "sample")
 
     def __init__(self) -> None:
         self.sample: Sample[T] | None = None
+        self._subscribers: tuple[Callable[[T, float], None], ...] = ()
 
     def publish(self, value: T, timestamp: float) -> Sample[T]:
         prev = self.sample
         sample = Sample(value, timestamp, 1 if prev is None else prev.seq + 1)
         self.sample = sample
+        for callback in self._subscribers:
+            callback(value, timestamp)
         return sample
+
+    def subscribe(self, callback: Callable[[T, float], None]) -> Callable[[], None]:
+        """Call ``callback(value, timestamp)`` on every publish, in the publishing thread (keep it quick and
+        thread-safe: hand the value to the event loop with ``call_soon_threadsafe``). Returns the unsubscriber."""
+        self._subscribers = (*self._subscribers, callback)
+
+        def unsubscribe() -> None:
+            self._subscribers = tuple(c for c in self._subscribers if c is not callback)
+
+        return unsubscribe
 
     @property
     def value(self) -> T | None:

@@ -69,6 +69,8 @@ class DriveReport:
             ``block_report_s``, or ``None``.
         shutdown_abandoned: parts whose ``shutdown()`` (or ``update()`` thread) outlived its timeout and
             was left running on a daemon thread.
+        pipelined: per pipelined part, ``runs``, ``published``, its own ``rate_hz`` and ``superseded`` (start
+            requests replaced by a newer one while it was busy: frames it never saw).
         stop_reason: ``"max_loop_count"``, ``"duration"``, ``"stop()"``, ``"cancelled"``, ``"error"`` or the
             name of the signal that stopped the car.
     """
@@ -87,6 +89,7 @@ class DriveReport:
     watchdog_events: int = 0
     longest_block_ms: tuple[float, str] | None = None
     shutdown_abandoned: list[str] = field(default_factory=list)
+    pipelined: dict[str, dict[str, float]] = field(default_factory=dict)
     stop_reason: str = ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -162,6 +165,9 @@ class Vehicle:
         shutdown_timeout: float = 2.0,
         timeout: float | None = None,
         actuator: bool | None = None,
+        pipelined: bool = False,
+        trigger: str | None = None,
+        react: bool = False,
     ) -> None:
         """Add ``part`` to the end of the drive loop.
 
@@ -188,6 +194,13 @@ class Vehicle:
                 cancelled and handled by ``on_error`` as a :class:`PartTimeoutError`.
             actuator: shut this part down in the first, safe-state phase (default: decided from the part:
                 it has ``safe_state_sync``, or it is one of Donkeycar's actuator parts).
+            pipelined: run the part beside the ticks instead of inside them: whenever it is free it takes the
+                newest inputs, computes (a sync ``run`` in a worker thread) and publishes; the ticks read its
+                outputs as latest values (``asyncdonkey.pipeline``).
+            trigger: for a pipelined part, the input whose new values start it (the camera frame), instead of
+                the tick.
+            react: also run this part the moment a pipelined part upstream of it publishes (``DriveMode``, the
+                actuators), not only in its place in the tick.
         """
         label = name or type(part).__name__
         if self._drive is not None:
@@ -206,6 +219,9 @@ class Vehicle:
             timeout,
             actuator,
             self._offload,
+            pipelined,
+            trigger,
+            react,
         )
         e.series = self.profiler.series_for(e.name)
         self.parts.append(e)
@@ -292,6 +308,7 @@ class Vehicle:
             outcome = exc
             report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
         self.on = drive.on = False
+        drive.unsubscribe_push_sources()
         try:
             cancelled = await shutdown_drive(drive)
         finally:
@@ -355,6 +372,14 @@ class Vehicle:
                 (
                     f"sensing-to-actuation ({name})",
                     f"p50 {lat['50%']:.1f} ms, p99 {lat['99%']:.1f} ms, max {lat['max']:.1f} ms",
+                )
+            )
+        for name, p in report.pipelined.items():
+            rows.append(
+                (
+                    f"pipelined {name}",
+                    f"{p['runs']} runs at {p['rate_hz']:.2f} Hz (loop {report.achieved_hz:.2f} Hz), "
+                    f"{p['superseded']} starts superseded while it was busy",
                 )
             )
         if report.part_errors:

@@ -57,21 +57,27 @@ class Entry:
         "call",
         "errors",
         "executor",
+        "input_origin",
         "inputs",
         "is_sync_inline",
+        "kicks",
         "latency",
         "name",
         "on_error",
         "outputs",
         "part",
+        "pipelined",
+        "react",
         "run_condition",
         "series",
         "shutdown_fn",
         "shutdown_takes_timeout",
         "shutdown_timeout",
         "store",
+        "store_fixed",
         "threaded",
         "timeout",
+        "trigger",
     )
 
     def __init__(self) -> None:
@@ -79,6 +85,15 @@ class Entry:
         self.series: Any = None
         #: set per run for an actuator the loop measures itself: records (run end - origin of its command)
         self.latency: Callable[[float], None] | None = None
+        self.pipelined = False
+        #: per run: (channel, pipeline) pairs this entry's outputs trigger (see ``asyncdonkey.pipeline``)
+        self.kicks: tuple[Any, ...] = ()
+        self.trigger: str | None = None
+        self.react = False
+        #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them) and a
+        #: store that writes the outputs with a given origin (the inputs may have moved on meanwhile)
+        self.input_origin: Callable[[float], float] | None = None
+        self.store_fixed: Callable[[Any, float, float], None] | None = None
 
 
 def build_entry(
@@ -95,6 +110,9 @@ def build_entry(
     timeout: Any,
     actuator: Any,
     offload: Callable[[Callable[..., Any]], Callable[..., Any]],
+    pipelined: Any = False,
+    trigger: Any = None,
+    react: Any = False,
 ) -> Entry:
     """Validate one ``Vehicle.add`` call and prepare its :class:`Entry`; errors name the part and argument."""
     where = f"Vehicle.add({name})"
@@ -115,6 +133,19 @@ def build_entry(
         raise PartSpecError(f"{where}: shutdown_timeout must be a positive number of seconds, got {shutdown_timeout!r}")
     if timeout is not None and not _positive_finite(timeout):
         raise PartSpecError(f"{where}: timeout must be a positive number of seconds or None, got {timeout!r}")
+    if type(pipelined) is not bool:
+        raise PartSpecError(f"{where}: pipelined must be True or False, got {pipelined!r}")
+    if type(react) is not bool:
+        raise PartSpecError(f"{where}: react must be True or False, got {react!r}")
+    if trigger is not None:
+        if not pipelined:
+            raise PartSpecError(f"{where}: trigger={trigger!r} starts a pipelined part; add it with pipelined=True")
+        if trigger not in ins:
+            raise PartSpecError(f"{where}: trigger {trigger!r} must be one of the part's inputs {list(ins)}")
+    if pipelined and threaded:
+        raise PartSpecError(f"{where}: a pipelined part runs in its own worker; threaded=True does not apply")
+    if pipelined and react:
+        raise PartSpecError(f"{where}: react=True is for parts downstream of a pipelined part, not the part itself")
     if actuator is not None and type(actuator) is not bool:
         raise PartSpecError(f"{where}: actuator must be True, False or None (decide from the part), got {actuator!r}")
 
@@ -140,6 +171,8 @@ def build_entry(
     is_coro = inspect.iscoroutinefunction(fn)
     if executor and is_coro:
         raise PartSpecError(f"{where}: executor=True is for a sync {method}(); {name}.{method} is async")
+    if pipelined and not is_coro:
+        executor = True  # a pipelined sync part computes in a worker thread, never on the loop thread
     awaits = is_coro or executor
     if timeout is not None and not awaits:
         raise PartSpecError(
@@ -160,12 +193,17 @@ def build_entry(
     e.threaded = "thread" if threaded and not async_update else ("task" if async_update else None)
     e.executor = executor
     e.awaits = awaits
+    e.pipelined = pipelined
+    e.trigger = trigger
+    e.react = react
     e.is_sync_inline = not awaits
     call = offload(fn) if executor else fn
     e.call = _with_timeout(call, e.timeout, name) if e.timeout is not None else call
     e.args = _arg_getter(mem, ins)
     origin_fn = getattr(part, "output_origin", None)
     e.store = _storer(mem, name, ins, outs, origin_fn if callable(origin_fn) else None)
+    e.input_origin = _input_origin(mem, ins)
+    e.store_fixed = _fixed_storer(mem, name, outs)
     shutdown = getattr(part, "shutdown", None)
     e.shutdown_fn = shutdown if callable(shutdown) else None
     e.shutdown_takes_timeout = e.shutdown_fn is not None and _accepts_keyword(e.shutdown_fn, "timeout")
@@ -337,6 +375,55 @@ def _storer(
             d[k] = v
             stamps[k] = now
             origins[k] = o
+
+    return store_many
+
+
+def _input_origin(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[float], float]:
+    """``origin(now)``: the oldest origin among the inputs that count (the rule above), ``now`` if none."""
+    oget, dormant = mem.origins.get, mem.dormant
+    sources = tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
+
+    def origin(now: float) -> float:
+        o = _INF
+        for k in sources:
+            t = oget(k)
+            if t is not None and t < o and k not in dormant:
+                o = t
+        return now if o == _INF else o
+
+    return origin
+
+
+def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[Any, float, float], None] | None:
+    """``store(result, origin, now)``: every output gets ``origin`` (a pipelined part's inputs, as read)."""
+    if not outs:
+        return None
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+    n = len(outs)
+    if n == 1:
+        (k1,) = outs
+
+        def store_one(value: Any, origin: float, now: float) -> None:
+            d[k1] = value
+            stamps[k1] = now
+            origins[k1] = origin
+
+        return store_one
+
+    def store_many(values: Any, origin: float, now: float) -> None:
+        try:
+            count = len(values)
+        except TypeError:
+            raise OutputCountError(
+                f"returned {type(values).__name__} for {n} outputs {list(outs)}; expected a tuple or list of {n} values"
+            ) from None
+        if count < n:
+            raise OutputCountError(f"returned {count} values for {n} outputs {list(outs)}")
+        for k, v in zip(outs, values, strict=False):
+            d[k] = v
+            stamps[k] = now
+            origins[k] = origin
 
     return store_many
 

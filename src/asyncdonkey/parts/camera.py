@@ -158,6 +158,11 @@ class CvCamera:
         """The capture time of the frame ``run()`` returned: a frame re-served on later ticks keeps its age."""
         return self._origin
 
+    def subscribe(self, callback: Callable[[Any, float], None]) -> Callable[[], None]:
+        """Push each frame as it is captured, from the reader thread (a pipelined pilot with ``trigger`` starts
+        on it at once). Only for the plain image output (``timestamp=False``)."""
+        return self.reader.latest.subscribe(callback)
+
     def update(self) -> None:
         """Donkeycar's threaded-part loop: grab until :meth:`shutdown`."""
         self.reader.run_forever()

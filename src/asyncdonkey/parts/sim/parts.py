@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -202,6 +203,10 @@ class SimCamera:
     def output_origin(self) -> float | None:
         """The render time of the frame ``run()`` returned (the simulated capture)."""
         return self._origin
+
+    def subscribe(self, callback: Callable[[np.ndarray, float], None]) -> Callable[[], None]:
+        """Push each frame as it is rendered (a pipelined pilot with ``trigger`` starts on it at once)."""
+        return self.car.frames.subscribe(callback)
 
     def age(self) -> float:
         """Seconds since the newest frame was taken, on the runtime clock (``inf`` before the first)."""

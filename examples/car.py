@@ -33,6 +33,7 @@ carry the driver's command for every frame the pilot saw: the labels a DAgger ro
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 from pathlib import Path
 from typing import Any, TextIO
@@ -59,6 +60,27 @@ RECORD_INPUTS = (
     ("sim/cte", "float"),
     ("sim/laps", "int"),
 )
+
+
+#: How the pilot runs (``--pilot-mode``).
+PILOT_MODES = ("in-order", "pipelined", "frame")
+
+
+class SlowedPilot:
+    """A pilot whose every inference takes ``delay`` seconds longer (``--pilot-delay``): the simulated car
+    driven by the pilot a Raspberry Pi would run, to see what pipelining buys."""
+
+    def __init__(self, pilot: Any, delay: float) -> None:
+        self.pilot = pilot
+        self.delay = delay
+
+    async def run(self, image: Any) -> Any:
+        result = await self.pilot.run(image)
+        await asyncio.sleep(self.delay)
+        return result
+
+    def shutdown(self) -> Any:
+        return self.pilot.shutdown()
 
 
 def recent_lateness_p99_ms(vehicle: Vehicle, ticks: int = 200) -> float | None:
@@ -214,8 +236,15 @@ def make_car(
     seed: int = 0,
     status: TextIO | None = sys.stderr,
     rate_hz: float = DRIVE_LOOP_HZ,
+    pilot_mode: str = "frame",
+    pilot_delay: float = 0.0,
 ) -> tuple[Vehicle, SimCar]:
     """Assemble the simulated car. ``pilot`` is an ONNX model path or ``"user"`` (no pilot).
+
+    ``pilot_mode``: ``"in-order"`` (the pilot inside the tick, as Donkeycar runs it), ``"pipelined"`` (beside
+    the ticks, started each tick) or ``"frame"`` (beside the ticks, started by each new camera frame, with the
+    drive mode and the car reacting at once to its commands). ``pilot_delay`` adds that many seconds to each
+    inference, to drive with the pilot a Raspberry Pi would run (``--pilot-delay 0.08``).
 
     Returns the vehicle and the simulated car (for its simulator's state after the drive).
     """
@@ -235,22 +264,30 @@ def make_car(
         inputs=["sim/x", "sim/y", "sim/heading"],
         outputs=["user/angle", "user/throttle", "user/mode", "recording"],
     )
+    if pilot_mode not in PILOT_MODES:
+        raise ValueError(f"car.py --pilot-mode: expected one of {', '.join(PILOT_MODES)}, got {pilot_mode!r}")
+    react = not user_only and pilot_mode == "frame"
     if not user_only:
         from asyncdonkey.parts.pilot import OnnxPilot  # onnxruntime loads only when a pilot drives
 
         v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
+        model: Any = OnnxPilot(pilot)
         v.add(
-            OnnxPilot(pilot),
+            SlowedPilot(model, pilot_delay) if pilot_delay > 0 else model,
             inputs=["cam/image_array"],
             outputs=["pilot/angle", "pilot/throttle"],
             run_condition="run_pilot",
+            pipelined=pilot_mode != "in-order",
+            trigger="cam/image_array" if pilot_mode == "frame" else None,
+            name="OnnxPilot",
         )
     v.add(
         DriveMode(ai_throttle_mult=ai_throttle_mult),
         inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
         outputs=["angle", "throttle"],
+        react=react,
     )
-    v.add(car, inputs=["angle", "throttle"])
+    v.add(car, inputs=["angle", "throttle"], react=react)
     if record is not None:
         from asyncdonkey.parts.tub import TubWriter
 
@@ -289,6 +326,20 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="scale the pilot's throttle (default 1.3: the shipped pilot learnt the scripted driver's cautious pace)",
     )
     ap.add_argument("--seed", type=option(non_negative_int), default=0, help="the scripted driver's seed")
+    ap.add_argument(
+        "--pilot-mode",
+        choices=PILOT_MODES,
+        default="frame",
+        help="how the pilot runs: in-order (inside the tick, as Donkeycar), pipelined (beside the ticks), frame "
+        "(beside the ticks, started by each camera frame, its commands applied at once; the default: the lowest "
+        "sensing-to-actuation latency, docs/control-periods.md)",
+    )
+    ap.add_argument(
+        "--pilot-delay",
+        type=option(non_negative_float),
+        default=0.0,
+        help="add S seconds to each inference (0.08: a Raspberry Pi 4's float32 pilot)",
+    )
     ap.add_argument("--quiet", action="store_true", help="no live status line")
     args = ap.parse_args(argv)
     if args.seconds is None:  # --laps N drives until N laps; a time limit only when asked for
@@ -311,5 +362,7 @@ def build(argv: list[str]) -> Vehicle:
         ai_throttle_mult=args.ai_throttle_mult,
         seed=args.seed,
         status=None if args.quiet else sys.stderr,
+        pilot_mode=args.pilot_mode,
+        pilot_delay=args.pilot_delay,
     )
     return vehicle

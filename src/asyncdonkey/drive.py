@@ -305,7 +305,7 @@ class Drive:
                 if lat is not None:
                     o = origins.get(e.inputs[0]) if e.inputs and e.inputs[0] is not None else None
                     if o is not None:
-                        lat(t_end - o)
+                        lat(t_end, o)
                 if t_end - t > block_report_s and e.is_sync_inline:
                     self._report_block(e, t_end - t, t_end)
             self.current = None
@@ -386,6 +386,18 @@ class Drive:
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
 
 
-def latency_recorder(profiler: Profiler, name: str) -> Callable[[float], None]:
-    """The function an actuator (or the loop, for it) calls with each sensing-to-actuation latency."""
-    return profiler.latency_for(name).record
+def latency_recorder(profiler: Profiler, name: str) -> Callable[[float, float], None]:
+    """``record(t, origin)``: the command sensed at ``origin`` reached actuator ``name``'s output at ``t``.
+
+    Counted once per command: a tick that re-applies a command already on the output (same origin: the pilot has
+    not published since) is not a new actuation, and counting it would inflate the figure with the idle time.
+    """
+    rec = profiler.latency_for(name).record
+    last: list[float | None] = [None]
+
+    def record(t: float, origin: float) -> None:
+        if origin != last[0]:
+            last[0] = origin
+            rec(t - origin)
+
+    return record

@@ -143,8 +143,13 @@ def export_linear_pilot(path: str | os.PathLike[str], W: np.ndarray, b: np.ndarr
     return _save(path, nodes, inits, outputs, layout, "asyncdonkey_linear_pilot")
 
 
-def export_donkey_linear_shaped(path: str | os.PathLike[str], seed: int = 0, layout: Layout = "NHWC") -> Path:
+def export_donkey_linear_shaped(
+    path: str | os.PathLike[str], seed: int = 0, layout: Layout = "NHWC", *, width: float = 1.0
+) -> Path:
     """Write a model with the layers of Donkeycar's ``KerasLinear`` and random (seeded) weights.
+
+    ``width`` scales every layer's filter count (compute grows about as its square): a way to make a model
+    that costs what a Raspberry Pi's inference costs (tens of ms) on a faster machine, for timing studies.
 
     Conv 24 5x5/2, 32 5x5/2, 64 5x5/2, 64 3x3/1, 64 3x3/1 (valid padding, Relu), flatten, Dense 100 and 50
     (Relu), then two Dense(1) heads ``n_outputs0`` (angle) and ``n_outputs1`` (throttle), each ``[1, 1]``, as
@@ -160,7 +165,10 @@ def export_donkey_linear_shaped(path: str | os.PathLike[str], seed: int = 0, lay
     nodes.append(helper.make_node("Transpose", [src], ["x_nchw"], perm=[0, 3, 1, 2]))
     x = "x_nchw"
     channels, h, w = IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1]
-    for i, (filters, k, stride) in enumerate(((24, 5, 2), (32, 5, 2), (64, 5, 2), (64, 3, 1), (64, 3, 1))):
+    if not (isinstance(width, int | float) and width > 0):
+        raise ValueError(f"export_donkey_linear_shaped: width must be a positive number, got {width!r}")
+    for i, (base, k, stride) in enumerate(((24, 5, 2), (32, 5, 2), (64, 5, 2), (64, 3, 1), (64, 3, 1))):
+        filters = max(1, round(base * width))
         fan_in = channels * k * k
         weight = rng.normal(0.0, np.sqrt(2.0 / fan_in), (filters, channels, k, k)).astype(np.float32)
         inits += [

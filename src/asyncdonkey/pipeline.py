@@ -143,7 +143,7 @@ class Pipeline:
                 if lat is not None and e.inputs and e.inputs[0] is not None:
                     o = origins.get(e.inputs[0])
                     if o is not None:
-                        lat(t_end - o)
+                        lat(t_end, o)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
@@ -266,4 +266,3 @@ def after_store(e: Any, origins: dict[str, float]) -> None:
     """Tell the pipelines triggered by ``e``'s outputs that they were written (called when ``e.kicks``)."""
     for k, p in e.kicks:
         p.new_value(origins.get(k))
-

@@ -17,7 +17,6 @@ These protocols are for type checkers and for reading: no part has to inherit fr
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 __all__ = ["Actuator", "OriginSource", "Part", "ThreadedPart"]
@@ -55,6 +54,7 @@ class Actuator(Protocol):
         """Runtime-clock time at which the current command goes stale (``inf``: it never does)."""
         ...
 
-    def bind_latency(self, record: Callable[[float], None] | None) -> None:
-        """Receive the drive's recorder of sensing-to-actuation latency (seconds), or ``None`` at its end."""
+    def attach(self, runtime: Any) -> None:
+        """At a drive's start, receive its :class:`~asyncdonkey.watchdog.ActuatorRuntime` (the latency recorder
+        ``record_latency(t, origin)`` and ``deadline_changed(deadline)`` for the watchdog); ``None`` at its end."""
         ...

@@ -44,8 +44,8 @@ class ActuatorRuntime:
 
     __slots__ = ("_watchdog", "record_latency")
 
-    def __init__(self, record_latency: Callable[[float], None], watchdog: Watchdog | None) -> None:
-        #: call with (time the command reached the output - origin of the command), in seconds
+    def __init__(self, record_latency: Callable[[float, float], None], watchdog: Watchdog | None) -> None:
+        #: call with (time the command reached the output, origin of the command); once per command
         self.record_latency = record_latency
         self._watchdog = watchdog
 

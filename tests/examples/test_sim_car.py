@@ -98,3 +98,44 @@ def test_car_option_defaults_and_bad_values(capsys):
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert f"argument {bad[0]}: expected" in err and repr(bad[1]) in err
+
+
+@pytest.mark.parametrize("pilot_mode", ["in-order", "pipelined", "frame"])
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_every_pilot_mode_drives_a_clean_lap_and_frame_mode_acts_within_the_inference(pilot_mode):
+    v, car = car_py.make_car(seconds=0, laps=1, status=None, pilot_mode=pilot_mode)
+    status = next(e.part for e in v.parts if e.name == "Status")
+    report = await v.run(rate_hz=20, max_loop_count=20 * 120)
+    assert car.sim.laps.laps == 1 and car.sim.respawns == 0 and status.off_track_ticks == 0
+    assert report.achieved_hz == pytest.approx(20.0)
+    latency = report.latency_ms["SimCar"]
+    if pilot_mode == "frame":
+        # each frame is inferred as it is rendered and the car takes the command at once: on the virtual
+        # clock the inference costs no time, so capture to actuation is 0
+        assert latency["max"] == pytest.approx(0.0, abs=1e-6)
+        assert report.pipelined["OnnxPilot"]["rate_hz"] == pytest.approx(20.0)
+    elif pilot_mode == "pipelined":
+        # started by the tick, its command reaches the car at the next tick: one period
+        assert latency["50%"] == pytest.approx(50.0)
+    else:
+        # in order: the frame rendered on the tick's deadline, inferred and applied in that tick
+        assert latency["max"] == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_an_80ms_pilot_slows_the_in_order_loop_but_not_the_frame_started_one():
+    rates = {}
+    for mode in ("in-order", "frame"):
+        v, _car = car_py.make_car(seconds=10, status=None, pilot_mode=mode, pilot_delay=0.08)
+        report = await v.run(rate_hz=20, max_loop_count=20 * 20)
+        rates[mode] = (report.achieved_hz, report.overruns)
+        if mode == "frame":
+            p = report.pipelined["OnnxPilot"]
+            assert p["rate_hz"] == pytest.approx(1 / 0.08, rel=0.05)  # the pilot at its own rate
+            # at most the frame's age when the pilot became free (< one frame period) + the inference
+            lat = report.latency_ms["SimCar"]
+            assert 80.0 <= lat["50%"] and lat["max"] <= 80.0 + 50.0 + 1e-6
+    assert rates["in-order"][0] == pytest.approx(12.5, rel=0.02) and rates["in-order"][1] > 100
+    assert rates["frame"] == (pytest.approx(20.0), 0)

@@ -251,7 +251,7 @@ class _PWMPart:
         if rt is None or origin is None:
             return
         if self.pulse == self.written_pulse:
-            rt.record_latency(now - origin)
+            rt.record_latency(now, origin)
             self._pending_origin = None
         else:
             self._pending_origin = origin
@@ -282,7 +282,7 @@ class _PWMPart:
         origin = self._pending_origin
         if origin is not None and pulse == self.pulse and self._runtime is not None:
             self._pending_origin = None
-            self._runtime.record_latency(clock.now() - origin)
+            self._runtime.record_latency(clock.now(), origin)
         return True
 
     async def _before_driving(self, clock: Clock) -> None:

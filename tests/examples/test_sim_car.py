@@ -116,11 +116,12 @@ async def test_every_pilot_mode_drives_a_clean_lap_and_frame_mode_acts_within_th
         assert latency["max"] == pytest.approx(0.0, abs=1e-6)
         assert report.pipelined["OnnxPilot"]["rate_hz"] == pytest.approx(20.0)
     elif pilot_mode == "pipelined":
-        # started by the tick, its command reaches the car at the next tick: one period
-        assert latency["50%"] == pytest.approx(50.0)
+        # started by the tick with the newest frame (up to a period old), its command reaches the car at the
+        # next tick: one more period
+        assert 50.0 <= latency["50%"] <= 100.0 + 1e-6
     else:
-        # in order: the frame rendered on the tick's deadline, inferred and applied in that tick
-        assert latency["max"] == pytest.approx(0.0, abs=1e-6)
+        # in order: the newest frame (up to a period old), inferred and applied in the same tick
+        assert latency["max"] <= 50.0 + 1e-6
 
 
 @pytest.mark.asyncio
@@ -136,6 +137,6 @@ async def test_an_80ms_pilot_slows_the_in_order_loop_but_not_the_frame_started_o
             assert p["rate_hz"] == pytest.approx(1 / 0.08, rel=0.05)  # the pilot at its own rate
             # at most the frame's age when the pilot became free (< one frame period) + the inference
             lat = report.latency_ms["SimCar"]
-            assert 80.0 <= lat["50%"] and lat["max"] <= 80.0 + 50.0 + 1e-6
+            assert lat["50%"] >= 80.0 and lat["max"] <= 80.0 + 50.0 + 1e-6
     assert rates["in-order"][0] == pytest.approx(12.5, rel=0.02) and rates["in-order"][1] > 100
     assert rates["frame"] == (pytest.approx(20.0), 0)

@@ -142,11 +142,26 @@ def safety_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def control_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for r in d.get("virtual", []):
+        if r.get("inference_ms") != 80.0:
+            continue
+        label = f"seed car, 80 ms pilot, {r['mode']}"
+        rows.append((label, "loop rate (Hz)", _fmt(r.get("loop_hz")), "", ""))
+        rows.append((label, "sensing-to-actuation p50 (ms)", _fmt(r.get("latency_p50_ms"), 0), "", ""))
+    for mode, r in (_get(d, "real", "modes") or {}).items():
+        label = f"real loop, ~40 ms OnnxPilot, {mode}"
+        rows.append((label, "loop rate (Hz) / overruns", f"{_fmt(r.get('loop_hz'))} / {r.get('overruns')}", "", ""))
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "tub": tub_rows,
     "pilot": pilot_rows,
     "safety": safety_rows,
+    "control_periods": control_rows,
 }
 
 

@@ -1,4 +1,4 @@
-"""MPU6050 / MPU9250 accelerometer + gyroscope driver (register facts in DESIGN.md §5).
+"""MPU6050 / MPU9250 accelerometer + gyroscope driver (register facts below).
 
 Design notes:
 

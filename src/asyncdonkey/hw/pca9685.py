@@ -1,6 +1,6 @@
 """PCA9685 16-channel 12-bit PWM driver (the servo board of most Donkeycars).
 
-Register facts are in DESIGN.md §5. Design notes:
+Register facts: the datasheet's register map (MODE1 0x00, MODE2 0x01, LEDn at 0x06 + 4n, PRE_SCALE 0xFE). Design notes:
 
 * **One driver per chip.** :func:`get_pca9685` keeps one :class:`PCA9685` per (bus, address) on the shared
   :class:`~asyncdonkey.hw.i2c.I2CBus`. Donkeycar builds a new chip object per pin and each one re-runs the

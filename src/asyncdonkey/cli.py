@@ -30,6 +30,7 @@ from types import ModuleType
 from typing import Any, NoReturn
 
 from . import __version__
+from .errors import AsyncdonkeyError
 from .loop import PartError, Vehicle, run_blocking
 from .options import BadValue, non_negative_int, option, positive_float
 
@@ -38,7 +39,7 @@ __all__ = ["CarFileError", "car_rate_hz", "load_car", "main"]
 EXIT_USAGE = 2
 
 
-class CarFileError(Exception):
+class CarFileError(AsyncdonkeyError):
     """The car file cannot provide a vehicle; the message is one line for the user."""
 
 

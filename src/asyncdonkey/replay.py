@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from .clock import get_clock
+from .errors import AsyncdonkeyError
 from .loop import PartError, Vehicle
 from .options import option, positive_float
 from .parts.tub import Record, Tub, TubError
@@ -95,7 +96,7 @@ _AT = "replay/at_s"
 _PILOT_OUT = ("pilot/angle", "pilot/throttle")
 
 
-class ReplayError(Exception):
+class ReplayError(AsyncdonkeyError):
     """A replay cannot run or cannot go on; the message is one line naming the tub, model or record."""
 
 

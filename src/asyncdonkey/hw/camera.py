@@ -39,6 +39,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..errors import AsyncdonkeyError
 from ..latest import Latest, Sample
 from ..ratelimit import LogThrottle
 
@@ -50,7 +51,7 @@ DEFAULT_IMAGE_W = 160
 DEFAULT_IMAGE_H = 120
 
 
-class CameraError(RuntimeError):
+class CameraError(AsyncdonkeyError, RuntimeError):
     """A camera source cannot be opened or gives no frames. The message names the source."""
 
 

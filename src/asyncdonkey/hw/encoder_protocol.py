@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..clock import get_clock
+from ..errors import AsyncdonkeyError
 from ..ratelimit import LogThrottle
 from .serial_port import Line, SerialPort
 
@@ -61,7 +62,7 @@ def continuous(ms: int) -> bytes:
     return b"c%d\n" % ms
 
 
-class EncoderProtocolError(ValueError):
+class EncoderProtocolError(AsyncdonkeyError, ValueError):
     """A line from the encoder board that is not ``ticks,millis[;ticks,millis]``."""
 
 

@@ -32,6 +32,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, TypeVar
 
+from ..errors import AsyncdonkeyError
+
 __all__ = [
     "TRANSIENT_ERRNOS",
     "I2CBus",
@@ -66,7 +68,7 @@ class SMBusLike(Protocol):
     def close(self) -> None: ...
 
 
-class I2CError(OSError):
+class I2CError(AsyncdonkeyError, OSError):
     """An I2C transfer failed for good. Names the bus, device address, register and operation.
 
     It is an ``OSError`` (with the underlying ``errno``) so code written against smbus2 that catches

@@ -10,6 +10,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+from ..errors import AsyncdonkeyError
+
 __all__ = ["PCA9685Pin", "PinSpecError", "parse_pca9685_pin"]
 
 EXPECTED = "'PCA9685.<bus>:<hex address>.<channel>', e.g. 'PCA9685.1:40.1' (bus 1, address 0x40, channel 1)"
@@ -18,7 +20,7 @@ _SPEC = re.compile(r"^(?P<provider>[A-Za-z0-9_]+)\.(?P<bus>\d+):(?P<addr>(?:0[xX
 _PROVIDER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-class PinSpecError(ValueError):
+class PinSpecError(AsyncdonkeyError, ValueError):
     """A pin spec that cannot be parsed or names a pin asyncdonkey cannot drive."""
 
 

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from ..clock import get_clock
+from ..errors import AsyncdonkeyError
 from ..latest import Latest
 from ..ratelimit import LogThrottle
 from .serial_port import SerialPort, SerialPortClosed
@@ -105,7 +106,7 @@ MAX_REVOLUTION_NODES = 8000
 MIN_REVOLUTION_NODES = 50
 
 
-class RPLidarError(RuntimeError):
+class RPLidarError(AsyncdonkeyError, RuntimeError):
     """The lidar answered something other than what was asked, or reported an error."""
 
 

@@ -40,6 +40,7 @@ import serial
 from serial_asyncio import connection_for_serial  # the one import of the asyncio serial layer (see docstring)
 
 from ..clock import Clock, get_clock
+from ..errors import AsyncdonkeyError
 from ..ratelimit import LogThrottle
 
 __all__ = ["ByteReceiver", "Line", "LineFramer", "SerialPort", "SerialPortClosed"]
@@ -59,7 +60,7 @@ class Line(NamedTuple):
     text: str
 
 
-class SerialPortClosed(ConnectionError):
+class SerialPortClosed(AsyncdonkeyError, ConnectionError):
     """Raised by :meth:`SerialPort.readline` once the port has been closed and no line is left."""
 
 

@@ -38,12 +38,14 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ..errors import AsyncdonkeyError
+
 __all__ = ["OnnxPilot", "PilotModelError", "physical_cores"]
 
 IMAGE_SHAPE = (120, 160, 3)
 
 
-class PilotModelError(ValueError):
+class PilotModelError(AsyncdonkeyError, ValueError):
     """The model file is missing, unreadable or not a pilot this part can run; the message names the file."""
 
 

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ...errors import AsyncdonkeyError
+
 __all__ = [
     "IMAGES_DIR",
     "IMAGE_EXTENSIONS",
@@ -68,7 +70,7 @@ IMAGE_EXTENSIONS: Mapping[str, str] = {"image_array": ".jpg", "gray16_array": ".
 RESERVED_KEYS: tuple[str, ...] = ("_index", "_session_id", "_timestamp_ms")
 
 
-class TubError(Exception):
+class TubError(AsyncdonkeyError):
     """Base class for tub errors."""
 
 

@@ -318,9 +318,8 @@ class Drive:
             if over > _TIME_EPS:
                 self.overruns += 1
                 overrun_rec(over)
-                if verbose and jitter_log.allow("jitter", end):
-                    held = jitter_log.take_suppressed("jitter")
-                    more = f" ({held} more since the last warning)" if held else ""
+                more = jitter_log.ready("jitter", end) if verbose else None
+                if more is not None:
                     logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
             else:
                 overrun_rec(0.0)
@@ -342,18 +341,16 @@ class Drive:
         if e.on_error == "stop":
             self.stop_reason = "error"
             raise err from exc
-        if self._errlog.allow(e.name, now):
-            held = self._errlog.take_suppressed(e.name)
-            more = f" ({held} more errors since the last report)" if held else ""
+        more = self._errlog.ready(e.name, now, "more errors")
+        if more is not None:
             logger.error("%s; continuing (on_error='continue')%s", err, more, exc_info=exc)
 
     def _report_block(self, e: Entry, blocked: float, now: float) -> None:
         """A sync part held the loop thread past the failsafe window: name it (the watchdog covered the car)."""
         if self.longest_block is None or blocked > self.longest_block[0]:
             self.longest_block = (blocked, e.name)
-        if self._blocklog.allow(e.name, now):
-            held = self._blocklog.take_suppressed(e.name)
-            more = f" ({held} more since the last report)" if held else ""
+        more = self._blocklog.ready(e.name, now)
+        if more is not None:
             logger.warning(
                 "loop blocked %s ms by part %r (a sync run() on the loop thread; add it with executor=True if it "
                 "can block)%s",

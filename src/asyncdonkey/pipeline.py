@@ -153,9 +153,8 @@ class Pipeline:
         e.errors += 1
         drive = self.drive
         if e.on_error == "continue":
-            if drive._errlog.allow(e.name, drive.clock.now()):
-                held = drive._errlog.take_suppressed(e.name)
-                more = f" ({held} more errors since the last report)" if held else ""
+            more = drive._errlog.ready(e.name, drive.clock.now(), "more errors")
+            if more is not None:
                 logger.error("part %r (pipelined) failed: %r; continuing%s", e.name, exc, more)
             return
         err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")

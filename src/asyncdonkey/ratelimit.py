@@ -30,3 +30,12 @@ class LogThrottle:
     def take_suppressed(self, key: object) -> int:
         """How many messages for ``key`` were held back since the last one allowed; resets the count."""
         return self._suppressed.pop(key, 0)
+
+    def ready(self, key: object, now: float, what: str = "more") -> str | None:
+        """``None`` while ``key`` is held back; else the suffix for the message that goes out: ``""``, or
+        ``" (N more since the last report)"`` when messages were held back. The one way every rate-limited
+        log line in the project says how much it did not say."""
+        if not self.allow(key, now):
+            return None
+        held = self._suppressed.pop(key, 0)
+        return f" ({held} {what} since the last report)" if held else ""

@@ -161,7 +161,7 @@ async def test_verbose_jitter_warning_is_rate_limited(caplog):
     assert report.overruns == 2000
     assert 2 <= len(warnings) <= 4  # about 3 s of loop time, one warning per second
     assert "0 ms overrun" in warnings[0].getMessage() or "1 ms overrun" in warnings[0].getMessage()
-    assert "more since the last warning" in warnings[1].getMessage()
+    assert "more since the last report" in warnings[1].getMessage()
     tables = [r for r in caplog.records if "Part Profile Summary" in r.getMessage()]
     assert len(tables) >= 4  # every 500 loops, plus the final report
 

@@ -223,15 +223,9 @@ class CameraReader:
     def _failed(self, what: str) -> None:
         self.read_failures += 1
         self.last_error = what
-        if self._log.allow("read", time.monotonic()):
-            held = self._log.take_suppressed("read")
-            logger.warning(
-                "camera source %s: %s (%d failures so far%s)",
-                self.name,
-                what,
-                self.read_failures,
-                f", {held} not logged" if held else "",
-            )
+        more = self._log.ready("read", time.monotonic())
+        if more is not None:
+            logger.warning("camera source %s: %s (%d failures so far)%s", self.name, what, self.read_failures, more)
 
     def wait_first_frame(self, timeout: float) -> Sample[np.ndarray]:
         """Block until a frame exists (at most ``timeout`` seconds); :class:`CameraError` names the source if not."""

@@ -427,10 +427,9 @@ class RPLidarProtocol:
         )
 
     def _warn(self, key: str, message: str, *args: object) -> None:
-        if not self._log.allow(key, self._now()):
+        more = self._log.ready(key, self._now())
+        if more is None:
             return
-        held = self._log.take_suppressed(key)
-        more = f" [and {held} more since the last report]" if held else ""
         logger.warning("RPLidar %r: " + message + more, self.name, *args)
 
     def _publish(self) -> None:

@@ -522,14 +522,9 @@ class SerialPort:
             self.open_failures += 1
             self.last_error = exc
             now = self._now() if self._now is not None else 0.0
-            if self._log.allow("open", now):
-                held = self._log.take_suppressed("open")
-                logger.warning(
-                    "serial port %r: cannot open (%s); retrying%s",
-                    self.name,
-                    exc,
-                    f" ({held} more failures not logged)" if held else "",
-                )
+            more = self._log.ready("open", now, "more failures")
+            if more is not None:
+                logger.warning("serial port %r: cannot open (%s); retrying%s", self.name, exc, more)
             return None
 
     async def _pause(self, clock: Clock, seconds: float) -> None:

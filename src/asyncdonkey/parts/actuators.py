@@ -265,16 +265,16 @@ class _PWMPart:
             self.last_error = exc
             self.written_pulse = None
             now = clock.now()
-            if self._log.allow("write", now):
-                held = self._log.take_suppressed("write")
+            more = self._log.ready("write", now)
+            if more is not None:
                 logger.error(
-                    "%s: writing pulse %d failed (%d errors so far%s); retrying every %.0f ms: %s",
+                    "%s: writing pulse %d failed (%d errors so far); retrying every %.0f ms: %s%s",
                     self.name,
                     pulse,
                     self.write_errors,
-                    f", {held} not logged" if held else "",
                     self.retry_s * 1e3,
                     exc,
+                    more,
                 )
             return False
         self.written_pulse = pulse
@@ -562,17 +562,17 @@ class PWMThrottle(_PWMPart):
         self.failsafe_active = stale
         if stale:
             self.failsafe_events += 1
-            if self._log.allow("failsafe", now):
-                held = self._log.take_suppressed("failsafe")
+            more = self._log.ready("failsafe", now)
+            if more is not None:
                 logger.warning(
                     "%s: throttle command is %.0f ms old (failsafe at %.0f ms): holding stopped pulse %d "
-                    "(failsafe event %d%s)",
+                    "(failsafe event %d)%s",
                     self.name,
                     age * 1e3,
                     (self.failsafe_age_s or 0) * 1e3,
                     self.neutral_pulse,
                     self.failsafe_events,
-                    f", {held} not logged" if held else "",
+                    more,
                 )
 
     def _desired(self, now: float) -> tuple[int, float]:

@@ -146,6 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
         pass
     else:
         add_replay_parser(sub)
+    from .donkey import add_donkey_parser
+
+    add_donkey_parser(sub)
     return parser
 
 
@@ -212,6 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         from .replay import replay_main
 
         return int(replay_main(args))
+    if args.command == "donkey":
+        from .donkey import donkey_main
+
+        return donkey_main(args)
     parser.print_help()
     return EXIT_USAGE
 

@@ -1,4 +1,4 @@
-"""The ``asyncdonkey`` command: ``run`` a car file, ``replay`` a recorded drive, ``--version``.
+"""The ``asyncdonkey`` command: ``run`` a car file, ``replay`` a drive, ``donkey`` a Donkeycar car, ``--version``.
 
 The car file convention: a Python file that defines ``build()`` returning a :class:`asyncdonkey.Vehicle`
 (a Donkeycar ``Vehicle`` is accepted too and converted). If ``build`` takes a parameter, it receives the

@@ -39,7 +39,9 @@ class Memory:
 
     Compatible with Donkeycar's ``Memory``: ``mem['a'] = 1``, ``mem['a', 'b'] = (1, 2)``, ``mem['a']``,
     ``mem['a', 'b']`` (a list), ``put(keys, values)``, ``get(keys)`` (missing → ``None``), ``update``,
-    ``keys``, ``values``, ``items``. The dict itself is ``mem.d``, as in Donkeycar.
+    ``keys``, ``values``, ``items``. The dict itself is ``mem.d``, as in Donkeycar. The deliberate differences
+    (Donkeycar's bugs not reproduced, no half-written multi-channel writes, a keyword-only ``clock``) are
+    listed in ``docs/donkeycar.md``.
     """
 
     __slots__ = ("_now", "d", "dormant", "origins", "stamps")

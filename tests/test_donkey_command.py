@@ -208,6 +208,17 @@ def test_a_failing_part_stops_the_car_and_exits_1(tmp_path, capsys):
     assert not (car / "result.txt").exists()  # start() raised: the car did not carry on as if it had ended
 
 
+def test_the_report_of_a_drive_that_failed_is_kept(tmp_path):
+    car = tmp_path / "car"
+    car.mkdir()
+    (car / "manage.py").write_text(textwrap.dedent(MINI_CAR))
+    options = DriveOptions(use_uvloop=False)
+    with pytest.raises(asyncdonkey.PartError, match="sensor unplugged") as err:
+        run_manage_py(car / "manage.py", ["50", "4"], options)
+    assert [r.stop_reason for r in options.reports] == ["error"]
+    assert err.value.report is options.reports[0] and options.reports[0].loops == 3
+
+
 def test_a_missing_car_file_is_a_usage_error(tmp_path, capsys):
     assert main(["donkey", str(tmp_path / "nope" / "manage.py"), "drive"]) == 2
     assert "not found" in capsys.readouterr().err

@@ -99,8 +99,8 @@ class DonkeycarVehicle(Vehicle):
     traceback and returns ``None``, so ``manage.py`` carried on as if the drive had ended normally).
     """
 
-    #: set by :func:`run_manage_py` on the class it installs
-    options: DriveOptions = DriveOptions()
+    #: set by :func:`run_manage_py` on the class it installs; ``None``: the car's own arguments, nothing recorded
+    options: DriveOptions | None = None
 
     def __init__(self, mem: Memory | None = None, **kwargs: Any) -> None:
         super().__init__(mem, **kwargs)
@@ -124,15 +124,16 @@ class DonkeycarVehicle(Vehicle):
     def start(  # type: ignore[override]
         self, rate_hz: float = 10, max_loop_count: int | None = None, verbose: bool = False, **kwargs: Any
     ) -> tuple[int, float]:
-        o = self.options
+        o = self.options if self.options is not None else DriveOptions()
         rate = o.rate_hz if o.rate_hz is not None else rate_hz
         loops = o.max_loop_count if o.max_loop_count is not None else max_loop_count
         duration = o.duration if o.duration is not None else kwargs.pop("duration", None)
         kwargs.setdefault("use_uvloop", o.use_uvloop)
+        before = self.last_report
         try:
             return super().start(rate, loops, verbose or o.verbose, duration=duration, **kwargs)
         finally:
-            if self.last_report is not None:
+            if self.last_report is not before:  # a drive ran (it may have ended in an error)
                 o.reports.append(self.last_report)
 
 

@@ -42,4 +42,4 @@ bench: $(VENV)/.test
 	$(PY) benchmarks/run_all.py --write-readme
 
 clean:
-	rm -rf $(VENV) .venv313 .pytest_cache .ruff_cache build *.egg-info src/*.egg-info
+	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache build *.egg-info src/*.egg-info

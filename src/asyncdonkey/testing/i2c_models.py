@@ -9,8 +9,8 @@ the kernel's i2c-dev and SMBus emulation do: it decodes the structs, turns each 
 (``read_byte_data`` is a one-byte write of the register then a one-byte read, in one transaction) and hands
 the messages to the device models at the addressed slots. No global state of smbus2 is patched.
 
-The models behave at the register level like the chips (their datasheets' register maps), so a driver bug shows up as a wrong
-register or a wrong output, not as a mismatch with a recorded call:
+The models behave at the register level like the chips (their datasheets' register maps), so a driver bug shows
+up as a wrong register or a wrong output, not as a mismatch with a recorded call:
 
 * :class:`PCA9685Model`: power-on state (asleep, all channels full-off), PRE_SCALE only writable while SLEEP,
   the register pointer auto-increments only with MODE1.AI, ALL_LED_* writes reach every channel and read back

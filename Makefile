@@ -13,11 +13,15 @@ $(VENV)/.base: pyproject.toml
 	$(PIP) install -e .
 	touch $@
 
-# Donkeycar's own pins would pull numpy < 2: install it without its dependencies, beside ours, so the
-# interop tests (its parts on our loop, its reader on our tubs) and the benchmark comparisons always run.
+# Donkeycar's own pins would pull numpy < 2 (5.3) and dozens of packages its car code does not import: install
+# it without its dependencies, beside the ones its code we run needs (the `donkeycar` extra), so the interop
+# tests (its parts, its test suite and a car made by `donkey createcar` on our loop, its reader on our tubs)
+# and the benchmark comparisons always run. Donkeycar 5.3 installs only on Python 3.11, 5.4 on 3.12 and 3.13.
+DONKEYCAR := "donkeycar==5.3.0; python_version < '3.12'" "donkeycar~=5.4.0; python_version >= '3.12'"
+
 $(VENV)/.test: $(VENV)/.base
-	$(PIP) install -e '.[test]'
-	$(PIP) install --no-deps donkeycar==5.3.0 pyfiglet pillow
+	$(PIP) install -e '.[test,donkeycar]'
+	$(PIP) install --no-deps $(DONKEYCAR)
 	touch $@
 
 run: $(VENV)/.base
@@ -38,4 +42,4 @@ bench: $(VENV)/.test
 	$(PY) benchmarks/run_all.py --write-readme
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info src/*.egg-info
+	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache build *.egg-info src/*.egg-info

@@ -27,7 +27,7 @@ from prettytable import PrettyTable
 
 from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
-from machine_info import describe
+from machine_info import describe, donkeycar_label
 
 try:  # Donkeycar prints a banner on import; keep it out of the figures
     import contextlib
@@ -149,7 +149,7 @@ def table(results: dict) -> str:
             pt.add_row(
                 [
                     f"{rate} Hz",
-                    "asyncdonkey" if who == "ours" else "donkeycar 5.3",
+                    "asyncdonkey" if who == "ours" else donkeycar_label(),
                     f"{r['rate_error_ppm']:+,.0f}",
                     f"{r['lateness_p50_ms']:.3f}",
                     f"{r['lateness_p99_ms']:.3f}",

@@ -4,7 +4,23 @@ from __future__ import annotations
 
 import os
 import platform
+from importlib import metadata
 from pathlib import Path
+
+
+def donkeycar_version() -> str | None:
+    """The installed Donkeycar's version (5.3.x on Python 3.11, 5.4.x on 3.12-3.13), or ``None``; read from the
+    package metadata, so Donkeycar's import banner stays out of the output."""
+    try:
+        return metadata.version("donkeycar")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def donkeycar_label() -> str:
+    """``"Donkeycar 5.4.0"``: how tables name the Donkeycar the comparison ran against."""
+    v = donkeycar_version()
+    return f"Donkeycar {v}" if v else "Donkeycar"
 
 
 def describe(with_load: bool = False) -> str:

@@ -6,8 +6,9 @@
 
 Each benchmark runs in its own process with ``--json`` (so one cannot warm up or disturb another), one after
 the other (they are timing benchmarks: running them side by side on two cores would measure each other). The
-table shows asyncdonkey beside Donkeycar 5.3 where Donkeycar is installed, and the ratio in the direction
-"how many times better": Donkeycar's figure over ours for times and errors, ours over Donkeycar's for rates.
+table shows asyncdonkey beside the installed Donkeycar (5.3 on Python 3.11, 5.4 on 3.12-3.13), and the ratio
+in the direction "how many times better": Donkeycar's figure over ours for times and errors, ours over
+Donkeycar's for rates.
 The README's table is replaced between its ``benchmarks:begin`` / ``benchmarks:end`` markers, with the machine
 it ran on and its load average at the start (figures from a busy machine are worse, and say so).
 """
@@ -25,7 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from machine_info import describe
+from machine_info import describe, donkeycar_version
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -33,7 +34,7 @@ README = ROOT / "README.md"
 RESULTS = HERE / "results" / "latest.json"
 BEGIN, END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
 
-Row = tuple[str, str, str, str, str]  # benchmark, figure, asyncdonkey, Donkeycar 5.3, ratio
+Row = tuple[str, str, str, str, str]  # benchmark, figure, asyncdonkey, Donkeycar, ratio
 
 
 def run_benchmark(name: str, quick: bool) -> dict[str, Any]:
@@ -165,11 +166,12 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
 }
 
 
-def markdown(rows: list[Row], where: str, when: str, quick: bool) -> str:
+def markdown(rows: list[Row], where: str, when: str, quick: bool, donkeycar: str | None = None) -> str:
+    theirs = f"Donkeycar {'.'.join(donkeycar.split('.')[:2])}" if donkeycar else "Donkeycar"
     lines = [
         f"Measured {when} on {where}{' (quick runs)' if quick else ''} by `make bench`.",
         "",
-        "| benchmark | figure | asyncdonkey | Donkeycar 5.3 | better by |",
+        f"| benchmark | figure | asyncdonkey | {theirs} | better by |",
         "|---|---|---:|---:|---:|",
     ]
     lines += [f"| {b} | {f} | {o} | {t} | {r} |" for b, f, o, t, r in rows]
@@ -202,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         where, when, quick = describe(with_load=True), dt.date.today().isoformat(), args.quick
         print(f"benchmarks on {where}", file=sys.stderr)
-        results = {"machine": where, "date": when, "quick": quick}
+        results = {"machine": where, "date": when, "quick": quick, "donkeycar": donkeycar_version()}
         for name in BENCHMARKS:
             if not args.only or name in args.only:
                 results[name] = run_benchmark(name, quick)
@@ -210,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, to_rows in BENCHMARKS.items():
         if name in results:
             rows += to_rows(results[name])
-    table = markdown(rows, where, when, quick)
+    # saved figures from before the version was recorded were measured against Donkeycar 5.3.0
+    table = markdown(rows, where, when, quick, results.get("donkeycar", "5.3.0"))
     print(table)
     if args.write_readme:
         write_readme(table)

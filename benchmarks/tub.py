@@ -41,7 +41,7 @@ import numpy as np
 from prettytable import PrettyTable
 
 from asyncdonkey.parts.tub import TubWriter
-from machine_info import describe
+from machine_info import describe, donkeycar_label
 
 try:  # Donkeycar prints a banner on import; keep it out of the figures
     with contextlib.redirect_stdout(io.StringIO()):
@@ -207,7 +207,7 @@ def table(results: dict) -> str:
     pt = PrettyTable()
     pt.field_names = ["run", "writer", "run() p50 (ms)", "p99 (ms)", "max (ms)", "records/s", "dropped"]
     for run, label in (("20hz", "20 Hz"), ("flat", "flat out")):
-        for who, name in (("floor", "no-op part (floor)"), ("ours", "asyncdonkey"), ("donkeycar", "donkeycar 5.3")):
+        for who, name in (("floor", "no-op part (floor)"), ("ours", "asyncdonkey"), ("donkeycar", donkeycar_label())):
             if who not in results or run not in results[who]:
                 continue
             r = results[who][run]

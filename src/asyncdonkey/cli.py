@@ -1,4 +1,4 @@
-"""The ``asyncdonkey`` command: ``run`` a car file, ``replay`` a recorded drive, ``--version``.
+"""The ``asyncdonkey`` command: ``run`` a car file, ``replay`` a drive, ``donkey`` a Donkeycar car, ``--version``.
 
 The car file convention: a Python file that defines ``build()`` returning a :class:`asyncdonkey.Vehicle`
 (a Donkeycar ``Vehicle`` is accepted too and converted). If ``build`` takes a parameter, it receives the
@@ -147,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
         pass
     else:
         add_replay_parser(sub)
+    from .donkey import add_donkey_parser
+
+    add_donkey_parser(sub)
     return parser
 
 
@@ -213,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
         from .replay import replay_main
 
         return int(replay_main(args))
+    if args.command == "donkey":
+        from .donkey import donkey_main
+
+        return donkey_main(args)
     parser.print_help()
     return EXIT_USAGE
 

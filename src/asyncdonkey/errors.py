@@ -12,7 +12,14 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .loop import DriveReport
 
-__all__ = ["AsyncdonkeyError", "OutputCountError", "PartError", "PartSpecError", "PartTimeoutError"]
+__all__ = [
+    "AsyncdonkeyError",
+    "ChannelCountError",
+    "OutputCountError",
+    "PartError",
+    "PartSpecError",
+    "PartTimeoutError",
+]
 
 
 class AsyncdonkeyError(Exception):
@@ -29,6 +36,13 @@ class PartSpecError(AsyncdonkeyError, ValueError, AssertionError):
 
 class OutputCountError(AsyncdonkeyError, ValueError):
     """A part returned a value that does not unpack into its declared outputs."""
+
+
+class ChannelCountError(AsyncdonkeyError, IndexError, ValueError):
+    """A multi-channel write to ``Memory`` (``put``, ``mem[a, b] = ...``) got fewer values than channels.
+
+    Also an ``IndexError``, which Donkeycar's ``Memory`` raises in that case, and a ``ValueError``.
+    """
 
 
 class PartTimeoutError(AsyncdonkeyError, TimeoutError):

@@ -22,7 +22,16 @@ import time
 from collections.abc import Callable, ItemsView, Iterable, KeysView, Mapping, Sequence, ValuesView
 from typing import Any
 
+from .errors import ChannelCountError
+
 __all__ = ["Memory"]
+
+
+def _count(values: Any) -> str:
+    try:
+        return str(len(values))
+    except TypeError:
+        return "fewer"
 
 
 class Memory:
@@ -30,12 +39,16 @@ class Memory:
 
     Compatible with Donkeycar's ``Memory``: ``mem['a'] = 1``, ``mem['a', 'b'] = (1, 2)``, ``mem['a']``,
     ``mem['a', 'b']`` (a list), ``put(keys, values)``, ``get(keys)`` (missing → ``None``), ``update``,
-    ``keys``, ``values``, ``items``. The dict itself is ``mem.d``, as in Donkeycar.
+    ``keys``, ``values``, ``items``. The dict itself is ``mem.d``, as in Donkeycar. The deliberate differences
+    (Donkeycar's bugs not reproduced, no half-written multi-channel writes, a keyword-only ``clock``) are
+    listed in ``docs/donkeycar.md``.
     """
 
     __slots__ = ("_now", "d", "dormant", "origins", "stamps")
 
-    def __init__(self, clock: Callable[[], float] | None = None) -> None:
+    def __init__(self, *, clock: Callable[[], float] | None = None) -> None:
+        # keyword-only: Donkeycar's Memory(*args, **kw) ignores its arguments, so a positional one here would
+        # silently become a clock
         self.d: dict[str, Any] = {}
         #: channel → runtime-clock time of the last write
         self.stamps: dict[str, float] = {}
@@ -63,17 +76,16 @@ class Memory:
             self.origins[k] = t
 
     # -- Donkeycar's API -------------------------------------------------------------------------------
+    # Semantics follow donkeycar.memory.Memory (5.3/5.4) call for call, except where its behaviour is a bug;
+    # each difference is listed in docs/donkeycar.md ("Compatibility notes").
     def __setitem__(self, key: str | Sequence[str], value: Any) -> None:
         if isinstance(key, str):
             self._store(key, value, self._now())
             return
+        # Donkeycar stores the key names as the values when the keys are a list (``value = tuple(key)``);
+        # any sequence of names works here as a tuple does there
         keys = tuple(key)
-        values = tuple(value)
-        if len(keys) != len(values):
-            raise ValueError(f"Memory: {len(keys)} channels {keys!r} but {len(values)} values")
-        now = self._now()
-        for k, v in zip(keys, values, strict=True):
-            self._store(k, v, now)
+        self._store_many("Memory[...] =", keys, value)
 
     def __getitem__(self, key: str | tuple[str, ...]) -> Any:
         if isinstance(key, tuple):
@@ -86,32 +98,59 @@ class Memory:
     def __len__(self) -> int:
         return len(self.d)
 
-    def update(self, new_d: Mapping[str, Any]) -> None:
+    def update(self, new_d: Mapping[str, Any] | Iterable[tuple[str, Any]]) -> None:
+        """Write every pair of ``new_d``: a mapping or an iterable of ``(key, value)`` pairs, as ``dict.update``."""
+        pairs = dict(new_d)  # dict's own rules and errors; nothing is written if a pair is malformed
         now = self._now()
-        for k, v in new_d.items():
+        for k, v in pairs.items():
             self._store(k, v, now)
 
     def put(self, keys: Sequence[str], inputs: Any) -> None:
-        """Write ``inputs`` to ``keys``: one key stores the value as is, several unpack it."""
-        now = self._now()
+        """Write ``inputs`` to ``keys``: one key stores the value as is, several take ``inputs[i]`` in order.
+
+        As in Donkeycar, values beyond the keys are ignored and too few raise ``IndexError`` (here a
+        :class:`~asyncdonkey.errors.ChannelCountError` naming the channels, raised before anything is written).
+        """
+        if isinstance(keys, str):
+            raise TypeError(
+                f"Memory.put: keys must be a list of channel names, got the string {keys!r} (write [{keys!r}])"
+            )
+        keys = tuple(keys)
         if len(keys) == 1:
-            self._store(keys[0], inputs, now)
+            self._store(keys[0], inputs, self._now())
             return
-        try:
-            n = len(inputs)
-        except TypeError:
-            raise ValueError(
-                f"Memory.put: {len(keys)} channels {list(keys)!r} need a sequence of {len(keys)} values,"
-                f" got {type(inputs).__name__}"
-            ) from None
-        if n != len(keys):
-            raise ValueError(f"Memory.put: {len(keys)} channels {list(keys)!r} but {n} values")
-        for k, v in zip(keys, inputs, strict=True):
-            self._store(k, v, now)
+        if not keys:
+            raise ChannelCountError("Memory.put: no channels given")
+        self._store_many("Memory.put:", keys, inputs)
 
     def get(self, keys: Iterable[str]) -> list[Any]:
         d = self.d
         return [d.get(k) for k in keys]
+
+    def _store_many(self, where: str, keys: tuple[str, ...], values: Any) -> None:
+        """Store ``values[i]`` in ``keys[i]``, all with one time stamp, or nothing if a value is missing."""
+        try:
+            picked = [values[i] for i in range(len(keys))]
+        except IndexError:
+            raise ChannelCountError(
+                f"{where} {len(keys)} channels {list(keys)!r} but only {_count(values)} values"
+            ) from None
+        except KeyError as exc:
+            # Donkeycar indexes values[i] too, so a dict fails there as well; say why
+            raise KeyError(
+                f"{where} values are looked up by position (values[{exc.args[0]!r}]);"
+                f" got a {type(values).__name__} without that key: pass the values as a list in channel order"
+            ) from None
+        except TypeError:
+            if hasattr(values, "__getitem__"):
+                raise
+            raise TypeError(
+                f"{where} {len(keys)} channels {list(keys)!r} need an indexable sequence of values,"
+                f" got {type(values).__name__}"
+            ) from None
+        now = self._now()
+        for k, v in zip(keys, picked, strict=True):
+            self._store(k, v, now)
 
     def keys(self) -> KeysView[str]:
         return self.d.keys()

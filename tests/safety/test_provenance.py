@@ -140,7 +140,7 @@ async def test_never_written_and_skipped_inputs_do_not_count():
 
 def test_memory_set_and_age_use_the_origin():
     now = [10.0]
-    mem = Memory(lambda: now[0])
+    mem = Memory(clock=lambda: now[0])
     mem.set("x", 1, origin=9.5)
     mem["y"] = 2
     now[0] = 10.25

@@ -1,0 +1,6 @@
+"""Donkeycar's own ``donkeycar/tests/test_kinematics.py`` (installed package), on asyncdonkey's Vehicle and Memory."""
+
+from asyncdonkey.donkey import donkeycar_replaced
+
+with donkeycar_replaced():
+    from donkeycar.tests.test_kinematics import *  # noqa: F403

@@ -257,13 +257,7 @@ def _storer(
     passthrough = tuple((i, k) for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
     sources = tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
 
-    def inherited(now: float) -> float:
-        o = _INF
-        for k in sources:
-            t = oget(k)
-            if t is not None and t < o and k not in dormant:
-                o = t
-        return now if o == _INF else o
+    inherited = _input_origin(mem, ins)
 
     def passed_through(value: Any, args: Sequence[Any]) -> float | None:
         if value is None:
@@ -283,31 +277,7 @@ def _storer(
         return o
 
     n = len(outs)
-    warned = False
-
-    def unpack(values: Any) -> Any:
-        nonlocal warned
-        try:
-            count = len(values)
-        except TypeError:
-            raise OutputCountError(
-                f"returned {type(values).__name__} for {n} outputs {list(outs)}; expected a tuple or list of {n} values"
-            ) from None
-        if count < n:
-            raise OutputCountError(f"returned {count} values for {n} outputs {list(outs)}")
-        if count > n and not warned:
-            # Donkeycar stores the first N and ignores the rest; parts written for it rely on that
-            warned = True
-            logger.warning(
-                "part %r returned %d values for its %d outputs %s: storing the first %d, ignoring the rest "
-                "(warned once)",
-                name,
-                count,
-                n,
-                list(outs),
-                n,
-            )
-        return values
+    unpack = _unpacker(name, outs)
 
     if stated is not None or not sources:
         # sources and parts that state their origin: one origin for every output
@@ -379,6 +349,39 @@ def _storer(
     return store_many
 
 
+def _unpacker(name: str, outs: tuple[str, ...]) -> Callable[[Any], Any]:
+    """``unpack(values)``: check that a result unpacks into ``outs`` (fewer values is an error naming the
+    channels; extra values are ignored with a warning once, as Donkeycar ignores them)."""
+    n = len(outs)
+    warned = False
+
+    def unpack(values: Any) -> Any:
+        nonlocal warned
+        try:
+            count = len(values)
+        except TypeError:
+            raise OutputCountError(
+                f"returned {type(values).__name__} for {n} outputs {list(outs)}; expected a tuple or list of {n} values"
+            ) from None
+        if count < n:
+            raise OutputCountError(f"returned {count} values for {n} outputs {list(outs)}")
+        if count > n and not warned:
+            # Donkeycar stores the first N and ignores the rest; parts written for it rely on that
+            warned = True
+            logger.warning(
+                "part %r returned %d values for its %d outputs %s: storing the first %d, ignoring the rest "
+                "(warned once)",
+                name,
+                count,
+                n,
+                list(outs),
+                n,
+            )
+        return values
+
+    return unpack
+
+
 def _input_origin(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[float], float]:
     """``origin(now)``: the oldest origin among the inputs that count (the rule above), ``now`` if none."""
     oget, dormant = mem.origins.get, mem.dormant
@@ -411,15 +414,10 @@ def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[An
 
         return store_one
 
+    unpack = _unpacker(name, outs)
+
     def store_many(values: Any, origin: float, now: float) -> None:
-        try:
-            count = len(values)
-        except TypeError:
-            raise OutputCountError(
-                f"returned {type(values).__name__} for {n} outputs {list(outs)}; expected a tuple or list of {n} values"
-            ) from None
-        if count < n:
-            raise OutputCountError(f"returned {count} values for {n} outputs {list(outs)}")
+        values = unpack(values)
         for k, v in zip(outs, values, strict=False):
             d[k] = v
             stamps[k] = now

@@ -161,7 +161,8 @@ class BackgroundWriter:
         atexit.register(self._atexit)
 
     def _resolve_now(self) -> float:
-        """Pick the timestamp source on the first record (the loop is only known once the car runs)."""
+        """Pick the timestamp source on the first record (the loop is only known once the car runs): wall-clock
+        seconds, or on a virtual-clock loop the wall time at the first record advanced by virtual time."""
         try:
             clock = get_clock(asyncio.get_running_loop())
         except RuntimeError:
@@ -169,24 +170,27 @@ class BackgroundWriter:
         if clock is not None and clock.is_virtual:
             vnow = clock.now
             wall0, v0 = time.time(), vnow()
-            wake = self._wake
-
-            def virtual_now() -> float:
-                # On virtual time the disk's work must take no time (like executor work): wake the thread
-                # for each record instead of letting it poll, and hold time while it has records in hand.
-                wake.set()
-                return wall0 + (vnow() - v0)
-
-            self._now = virtual_now
-            loop = asyncio.get_running_loop()
-            hold = getattr(loop, "hold_time_while", None)
-            if hold is not None:
-                self._release_time = hold(self._has_unwritten, self._label)
-                # and tell the loop when the queue runs dry, so time moves on without waiting for a poll
-                self._notify_idle = lambda: loop.call_soon_threadsafe(_noop)
+            self._now = self._on_virtual_time(lambda: wall0 + (vnow() - v0))
         else:
             self._now = time.time
         return self._now()
+
+    def _on_virtual_time(self, now: Callable[[], float]) -> Callable[[], float]:
+        """Make disk work take no virtual time (like executor work): returns ``now`` wrapped to wake the thread
+        for each record instead of letting it poll, holds the loop's time while records are in hand, and has
+        the thread tell the loop when the queue runs dry, so time moves on without waiting for a poll."""
+        wake = self._wake
+        loop = asyncio.get_running_loop()
+        hold = getattr(loop, "hold_time_while", None)
+        if hold is not None:
+            self._release_time = hold(self._has_unwritten, self._label)
+            self._notify_idle = lambda: loop.call_soon_threadsafe(_noop)
+
+        def virtual_now() -> float:
+            wake.set()
+            return now()
+
+        return virtual_now
 
     def _has_unwritten(self) -> bool:
         """Records or commands handed over and not yet written (read from the loop thread)."""

@@ -37,7 +37,7 @@ import json
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -115,18 +115,23 @@ class TimeMap:
         return cls(float(data["clock_anchor_s"]), int(data["wall_anchor_ns"]), data.get("clock", "monotonic"))
 
 
-@dataclass(frozen=True)
-class TickSnapshot:
-    """What ``run()`` hands over for one tick: references, never copies of the values themselves."""
+class TickSnapshot(NamedTuple):
+    """What ``run()`` hands over for one tick: references and small dict copies, never copies of the values.
+
+    The timing is not copied in the tick: the writer thread reads the profiler's ring buffers itself
+    (:meth:`~asyncdonkey.profiler.Series.at`), sample by number, which costs the tick nothing.
+    """
 
     t: float
     """runtime-clock time at which the tick recorded"""
     values: dict[str, Any]
     origins: dict[str, float]
-    stamps: dict[str, float]
-    timing: tuple[Any, ...] | None
-    """``(ticks, lateness, tick_count, tick_last, overrun_last, overruns, skipped, parts, latency)`` where
-    ``parts``/``latency`` are ``[(name, count, last)]``; ``None`` without a vehicle."""
+    ticks: int
+    """ticks started in this drive when the recorder ran (the profiler's lateness sample count)"""
+    profiler: Any
+    """the drive's :class:`~asyncdonkey.profiler.Profiler` (``None``: no timing)"""
+    drive: Any
+    """the drive (its ``overruns`` and ``skipped`` counters), or ``None``"""
 
 
 class TickEncoder:
@@ -134,8 +139,8 @@ class TickEncoder:
 
     Args:
         channels: the Memory channels to record (``None``: all of them).
-        every_tick: record every channel each tick; default records a channel on the ticks it was written
-            (its write stamp moved), which is what changed.
+        every_tick: record every channel each tick; default records a channel when it changed: a new value
+            (another object) or a new origin (the same value sensed again).
         kinds: ``{channel: kind}`` overrides (``"image"``, ``"laserscan"``, ``"json"``, ``"skip"``).
         gps: the (latitude, longitude) channels for ``/gps/fix``, or ``None``.
         jpeg_quality: JPEG quality of ``image`` channels.
@@ -162,10 +167,11 @@ class TickEncoder:
         self.timing = timing
         self._kinds: dict[str, str] = kinds
         self._specs: dict[str, ChannelSpec | None] = {}
-        self._last_stamp: dict[str, float] = {}
+        self._last_seen: dict[str, tuple[Any, float]] = {}
         self._jpeg = make_converter("image_array", jpeg_quality=jpeg_quality)
         self._counts: dict[tuple[str, str], int] = {}
         self._tick_count = 0
+        self._profiler: Any = None
         self.bad_values = 0
         self.bad_channels: dict[str, str] = {}
         """channel → why it is not recorded (a value the encoder cannot represent)."""
@@ -184,21 +190,21 @@ class TickEncoder:
     def encode(self, snap: TickSnapshot, times: TimeMap) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
         """The messages of one tick; values that cannot be encoded are counted in :attr:`bad_values`."""
         t_ns = times.to_ns(snap.t)
-        values, origins, stamps = snap.values, snap.origins, snap.stamps
+        values, origins = snap.values, snap.origins
         names = values.keys() if self.channels is None else [c for c in self.channels if c in values]
-        last = self._last_stamp
+        last = self._last_seen
         gps_due = False
         for ch in names:
-            stamp = stamps.get(ch)
-            if not self.every_tick and stamp is not None and last.get(ch) == stamp:
-                continue
-            last[ch] = stamp if stamp is not None else math.nan
             value = values[ch]
             if value is None:
                 continue
+            origin = origins.get(ch, snap.t)
+            seen = last.get(ch)
+            if not self.every_tick and seen is not None and seen[0] is value and seen[1] == origin:
+                continue
+            last[ch] = (value, origin)
             if self.gps is not None and ch in self.gps:
                 gps_due = True
-            origin = origins.get(ch, snap.t)
             try:
                 spec = self._spec_for(ch, value)
                 if spec is None:
@@ -213,8 +219,8 @@ class TickEncoder:
             fix = self._gps_fix(values, origins, snap.t, times)
             if fix is not None:
                 yield fix[0], fix[1], t_ns, fix[2]
-        if self.timing and snap.timing is not None:
-            yield from self._timing(snap.timing, t_ns)
+        if self.timing and snap.profiler is not None:
+            yield from self._timing(snap, t_ns)
 
     def _message(self, spec: ChannelSpec, ch: str, value: Any, origin: float, t: float, times: TimeMap) -> bytes:
         kind = self._kinds[ch]
@@ -245,35 +251,41 @@ class TickEncoder:
         msg = LocationFix(timestamp=_stamp(ns), frame_id="gps", latitude=float(lat), longitude=float(lon))
         return spec, msg.encode(), ns
 
-    def _timing(self, timing: tuple[Any, ...], t_ns: int) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
-        ticks, lateness, tick_count, tick_last, overrun_last, overruns, skipped, parts, latency = timing
+    def _timing(self, snap: TickSnapshot, t_ns: int) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
+        p, ticks = snap.profiler, snap.ticks
         counts = self._counts
-        if ticks < self._tick_count:  # a new drive: a new profiler starts counting again
+        if p is not self._profiler:  # a new drive: its profiler counts from 0 again
+            self._profiler = p
             counts.clear()
-        if ticks != self._tick_count and lateness is not None:
-            prev = counts.get(("", "tick"), 0)
-            new_tick = tick_count != prev and tick_last is not None
-            counts[("", "tick")] = tick_count
+            self._tick_count = 0
+        if ticks != self._tick_count:
+            lateness = p.lateness.at(ticks - 1)
+            duration = p.tick.at(ticks - 2)  # the previous tick: the current one has not ended
+            overrun = p.overrun.at(ticks - 2)
+            drive = snap.drive
             msg = {
                 "tick": ticks,
-                "lateness_ms": lateness * 1e3,
-                "duration_ms": tick_last * 1e3 if new_tick else None,
-                "overrun_ms": overrun_last * 1e3 if new_tick and overrun_last is not None else None,
-                "overruns": overruns,
-                "skipped_deadlines": skipped,
+                "lateness_ms": None if lateness is None else lateness * 1e3,
+                "duration_ms": None if duration is None else duration * 1e3,
+                "overrun_ms": None if overrun is None else overrun * 1e3,
+                "overruns": getattr(drive, "overruns", None),
+                "skipped_deadlines": getattr(drive, "skipped", None),
             }
+            self._tick_count = ticks
             yield self._json_spec(TICK_TOPIC, "asyncdonkey.Tick", msg), _dumps(msg), t_ns, t_ns
-        self._tick_count = ticks
         for topic, schema, series in (
-            (PARTS_TOPIC, "asyncdonkey.PartTimes", parts),
-            (LATENCY_TOPIC, "asyncdonkey.Latency", latency),
+            (PARTS_TOPIC, "asyncdonkey.PartTimes", p.parts),
+            (LATENCY_TOPIC, "asyncdonkey.Latency", p.latency),
         ):
             msg = {}
-            for name, count, last in series:
+            for name, s in list(series.items()):
                 key = (topic, name)
-                if count != counts.get(key, 0) and last is not None:
-                    msg[name] = last * 1e3
-                counts[key] = count
+                n = s.count
+                if n != counts.get(key, 0):
+                    last = s.at(n - 1)
+                    if last is not None:
+                        msg[name] = last * 1e3
+                    counts[key] = n
             if msg:
                 yield self._json_spec(topic, schema, msg), _dumps(msg), t_ns, t_ns
 

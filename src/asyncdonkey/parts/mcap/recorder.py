@@ -6,11 +6,12 @@ time and each actuator's sensing-to-actuation latency. Open it in Foxglove, read
 package (:func:`~.reader.read_mcap`), replay it (``asyncdonkey replay run.mcap``), turn it into a tub
 (``asyncdonkey convert``) or into a timing report (``asyncdonkey report``).
 
-The tick's cost is the same as the tub writer's: :meth:`McapRecorder.run` copies three small dicts (values,
-origins, write stamps: references, not the values), reads the profiler's newest samples and appends a tuple to
-the queue of :class:`~asyncdonkey.parts.background_writer.BackgroundWriter` (bounded, drop newest, counted).
-The writer thread encodes (JPEG, protobuf, JSON; :mod:`.encode`) and writes chunks; a sync point ends the
-chunk at most ``sync_interval_s`` after a record (:mod:`.sink` for what a crash or a full disk leaves).
+The tick's cost is close to the tub writer's: :meth:`McapRecorder.run` copies two small dicts (values and
+origins: references, not the values), reads the profiler's tick count and appends a tuple to the queue of
+:class:`~asyncdonkey.parts.background_writer.BackgroundWriter` (bounded, drop newest, counted). The writer
+thread reads the timing from the profiler's ring buffers, encodes (JPEG, protobuf, JSON; :mod:`.encode`) and
+writes chunks; a sync point ends the chunk at most ``sync_interval_s`` after a record (:mod:`.sink` for what
+a crash or a full disk leaves).
 
 Values must not be mutated after the tick that recorded them (the runtime's contract, as for the tub).
 """
@@ -24,7 +25,7 @@ from typing import Any
 
 from ...clock import get_clock
 from ..background_writer import BackgroundWriter
-from .encode import TickEncoder, TickSnapshot, TimeMap
+from .encode import TickEncoder, TimeMap
 from .sink import McapSink
 
 __all__ = ["McapRecorder"]
@@ -105,11 +106,15 @@ class McapRecorder(BackgroundWriter):
 
     def _first_time(self) -> float:
         """Anchor the runtime clock to the wall clock on the first record (the loop is known only then)."""
-        clock = get_clock()
-        now = clock.now
+        try:
+            clock = get_clock()
+        except RuntimeError:  # called outside an event loop (a script driving run() itself)
+            clock = None
+        now = clock.now if clock is not None else time.monotonic
+        virtual = clock is not None and clock.is_virtual
         t = now()
-        self._sink.times = TimeMap(t, time.time_ns(), "virtual" if clock.is_virtual else "monotonic")
-        self._now = self._on_virtual_time(now) if clock.is_virtual else now
+        self._sink.times = TimeMap(t, time.time_ns(), "virtual" if virtual else "monotonic")
+        self._now = self._on_virtual_time(now) if virtual else now
         return t
 
     # ------------------------------------------------------------------------------------ the tick
@@ -124,25 +129,13 @@ class McapRecorder(BackgroundWriter):
             return
         v = self.vehicle
         mem = v.mem
-        timing = None
+        t = self._now()
         if self._timing:
             p = v.profiler
-            late = p.lateness
-            tick = p.tick
-            drive = getattr(v, "_drive", None)
-            timing = (
-                late.count,
-                late.last,
-                tick.count,
-                tick.last,
-                p.overrun.last,
-                getattr(drive, "overruns", 0),
-                getattr(drive, "skipped", 0),
-                [(name, s.count, s.last) for name, s in p.parts.items()],
-                [(name, s.count, s.last) for name, s in p.latency.items()],
-            )
-        t = self._now()
-        q.append((t, time.monotonic(), TickSnapshot(t, dict(mem.d), dict(mem.origins), dict(mem.stamps), timing)))
+            snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, getattr(v, "_drive", None))
+        else:
+            snap = (t, dict(mem.d), dict(mem.origins), 0, None, None)
+        q.append((t, time.monotonic(), snap))
         if n >= self._high_water:
             self._high_water = n + 1
         self._accepted += 1

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
-from typing import IO
+from typing import IO, Any
 
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 
@@ -98,8 +98,9 @@ class McapSink:
             cid = self._channels[spec.topic] = self._writer.register_channel(spec.topic, spec.message_encoding, sid)
         return cid
 
-    def write(self, t: float, snap: TickSnapshot) -> None:
-        """Write one tick's messages into the open chunk."""
+    def write(self, t: float, payload: tuple[Any, ...]) -> None:
+        """Write one tick's messages (a :class:`~.encode.TickSnapshot` as a tuple) into the open chunk."""
+        snap = TickSnapshot(*payload)
         if self._broken is not None:
             raise OSError(f"{self.path}: not written after an earlier write error ({self._broken})")
         times = self.times

@@ -21,8 +21,9 @@ on ``/asyncdonkey/tick``, ``/asyncdonkey/parts`` and ``/asyncdonkey/latency`` (s
   sensing behind the value was when the tick recorded it (``now - origin``), so ages can be plotted;
 * ``skip``: not recorded.
 
-A latitude/longitude channel pair (``gps/latitude``, ``gps/longitude`` by default) also yields
-``foxglove.LocationFix`` on ``/gps/fix``, so the Map panel shows the track.
+Each camera frame also gets ``<topic>/steering`` (``foxglove.ImageAnnotations``): the user's and the pilot's
+steering drawn over the image. A latitude/longitude channel pair (``gps/latitude``, ``gps/longitude`` by
+default) also yields ``foxglove.LocationFix`` on ``/gps/fix``, so the Map panel shows the track.
 
 **Times.** ``log_time`` is when the tick recorded the value, ``publish_time`` (and the ``timestamp`` of the
 Foxglove schemas) the value's origin: when the sensing behind it happened (``mem.origins``). Both are runtime-clock
@@ -35,7 +36,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -145,6 +146,9 @@ class TickEncoder:
         gps: the (latitude, longitude) channels for ``/gps/fix``, or ``None``.
         jpeg_quality: JPEG quality of ``image`` channels.
         timing: record the loop's timing topics.
+        steering: angle channels drawn over each camera frame (``<image topic>/steering``,
+            ``foxglove.ImageAnnotations``): a line from the bottom centre, full left/right at ``±1`` drawn
+            ``steering_max_deg`` from vertical; the first channel green, the second magenta.
     """
 
     def __init__(
@@ -156,6 +160,8 @@ class TickEncoder:
         gps: tuple[str, str] | None = ("gps/latitude", "gps/longitude"),
         jpeg_quality: int = 75,
         timing: bool = True,
+        steering: Sequence[str] = ("user/angle", "pilot/angle"),
+        steering_max_deg: float = 45.0,
     ) -> None:
         kinds = dict(kinds or {})
         for ch, kind in kinds.items():
@@ -165,6 +171,8 @@ class TickEncoder:
         self.every_tick = every_tick
         self.gps = gps
         self.timing = timing
+        self.steering = tuple(steering)
+        self._steer_rad = math.radians(steering_max_deg)
         self._kinds: dict[str, str] = kinds
         self._specs: dict[str, ChannelSpec | None] = {}
         self._last_seen: dict[str, tuple[Any, float]] = {}
@@ -187,8 +195,14 @@ class TickEncoder:
         self._kinds[ch] = kind
         return spec
 
-    def encode(self, snap: TickSnapshot, times: TimeMap) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
-        """The messages of one tick; values that cannot be encoded are counted in :attr:`bad_values`."""
+    def encode(
+        self, snap: TickSnapshot, times: TimeMap, wanted: Callable[[ChannelSpec], bool] | None = None
+    ) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
+        """The messages of one tick; values that cannot be encoded are counted in :attr:`bad_values`.
+
+        ``wanted(spec)`` (the live server: has the topic a subscriber?) is asked before a value is encoded, so
+        nobody watching costs no JPEG encoding; the topic is registered either way.
+        """
         t_ns = times.to_ns(snap.t)
         values, origins = snap.values, snap.origins
         names = values.keys() if self.channels is None else [c for c in self.channels if c in values]
@@ -205,22 +219,35 @@ class TickEncoder:
             last[ch] = (value, origin)
             if self.gps is not None and ch in self.gps:
                 gps_due = True
+            overlay = None
             try:
                 spec = self._spec_for(ch, value)
                 if spec is None:
                     continue
-                data = self._message(spec, ch, value, origin, snap.t, times)
+                if self.steering and self._kinds[ch] == "image":
+                    ospec = self._overlay_spec(ch)
+                    if wanted is None or wanted(ospec):
+                        overlay = self._steering(ospec, value, values, times.to_ns(origin))
+                if wanted is not None and not wanted(spec):
+                    data = None
+                else:
+                    data = self._message(spec, ch, value, origin, snap.t, times)
             except (TypeError, ValueError, OverflowError) as exc:
                 self.bad_values += 1
                 self.bad_channels.setdefault(ch, str(exc))
                 continue
-            yield spec, data, t_ns, times.to_ns(origin)
+            if data is not None:
+                yield spec, data, t_ns, times.to_ns(origin)
+            if overlay is not None:
+                yield overlay[0], overlay[1], t_ns, times.to_ns(origin)
         if gps_due:
             fix = self._gps_fix(values, origins, snap.t, times)
-            if fix is not None:
+            if fix is not None and (wanted is None or wanted(fix[0])):
                 yield fix[0], fix[1], t_ns, fix[2]
         if self.timing and snap.profiler is not None:
-            yield from self._timing(snap, t_ns)
+            for msg in self._timing(snap, t_ns):
+                if wanted is None or wanted(msg[0]):
+                    yield msg
 
     def _message(self, spec: ChannelSpec, ch: str, value: Any, origin: float, t: float, times: TimeMap) -> bytes:
         kind = self._kinds[ch]
@@ -233,6 +260,44 @@ class TickEncoder:
         if kind == "laserscan":
             return _laser_scan(value, ch, _stamp(times.to_ns(origin)))
         return _dumps({"value": _plain(value), "age_ms": (t - origin) * 1e3})
+
+    def _overlay_spec(self, ch: str) -> ChannelSpec:
+        topic = topic_for(ch) + "/steering"
+        spec = self._specs.get(topic)
+        if spec is None:
+            from foxglove.messages import ImageAnnotations
+
+            spec = self._specs[topic] = _schema_spec(topic, ImageAnnotations)
+        return spec
+
+    def _steering(
+        self, spec: ChannelSpec, image: np.ndarray, values: dict[str, Any], ns: int
+    ) -> tuple[ChannelSpec, bytes] | None:
+        from foxglove.messages import Color, ImageAnnotations, Point2, PointsAnnotation, PointsAnnotationType
+
+        h, w = image.shape[:2]
+        stamp = _stamp(ns)
+        lines = []
+        colors = (Color(r=0.1, g=0.9, b=0.2, a=1.0), Color(r=0.9, g=0.2, b=0.9, a=1.0))
+        for i, key in enumerate(self.steering[:2]):
+            a = values.get(key)
+            if not _is_number(a):
+                continue
+            theta = max(-1.0, min(1.0, float(a))) * self._steer_rad
+            length = 0.6 * h
+            tip = Point2(x=w / 2 + length * math.sin(theta), y=h - length * math.cos(theta))
+            lines.append(
+                PointsAnnotation(
+                    timestamp=stamp,
+                    type=PointsAnnotationType.LineStrip,
+                    points=[Point2(x=w / 2, y=float(h)), tip],
+                    outline_color=colors[i],
+                    thickness=2.0,
+                )
+            )
+        if not lines:
+            return None
+        return spec, ImageAnnotations(timestamp=stamp, points=lines).encode()
 
     def _gps_fix(
         self, values: dict[str, Any], origins: dict[str, float], t: float, times: TimeMap

@@ -30,7 +30,17 @@ import numpy as np
 from .encode import topic_for
 from .sink import CLOCK_METADATA, SESSION_METADATA
 
-__all__ = ["McapInfo", "McapMessage", "McapRecord", "McapTub", "decode_image", "mcap_info", "read_mcap"]
+__all__ = [
+    "McapInfo",
+    "McapMessage",
+    "McapReadError",
+    "McapRecord",
+    "McapTub",
+    "decode_image",
+    "mcap_info",
+    "protobuf_class",
+    "read_mcap",
+]
 
 
 class McapReadError(Exception):
@@ -141,7 +151,7 @@ def _decoder(channel: Any, schema: Any) -> Any:
     if channel.message_encoding == "json":
         return lambda data: json.loads(data)
     if channel.message_encoding == "protobuf" and schema is not None:
-        cls = _protobuf_class(schema.name, schema.data)
+        cls = protobuf_class(schema.name, schema.data)
         return lambda data: _parse(cls, data)
     return lambda data: data
 
@@ -149,7 +159,8 @@ def _decoder(channel: Any, schema: Any) -> Any:
 _PROTO_CACHE: dict[tuple[str, bytes], Any] = {}
 
 
-def _protobuf_class(name: str, data: bytes) -> Any:
+def protobuf_class(name: str, data: bytes) -> Any:
+    """The ``google.protobuf`` message class of schema ``name`` from its serialized ``FileDescriptorSet``."""
     key = (name, data)
     cls = _PROTO_CACHE.get(key)
     if cls is None:

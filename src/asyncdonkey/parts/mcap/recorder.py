@@ -28,10 +28,58 @@ from ..background_writer import BackgroundWriter
 from .encode import TickEncoder, TimeMap
 from .sink import McapSink
 
-__all__ = ["McapRecorder"]
+__all__ = ["McapRecorder", "TickRecorder"]
 
 
-class McapRecorder(BackgroundWriter):
+class TickRecorder(BackgroundWriter):
+    """A part that hands each tick's Memory (and the loop's timing) to a sink on the writer thread.
+
+    The sink has a ``times`` attribute that receives the :class:`~.encode.TimeMap` before the first tick is
+    queued. Subclasses set ``self.vehicle`` and ``self._timing`` and call ``_start_writer(...,
+    time_fn=self._first_time)``.
+    """
+
+    vehicle: Any
+    _timing: bool
+
+    def _first_time(self) -> float:
+        """Anchor the runtime clock to the wall clock on the first record (the loop is known only then)."""
+        try:
+            clock = get_clock()
+        except RuntimeError:  # called outside an event loop (a script driving run() itself)
+            clock = None
+        now = clock.now if clock is not None else time.monotonic
+        virtual = clock is not None and clock.is_virtual
+        t = now()
+        self._sink.times = TimeMap(t, time.time_ns(), "virtual" if virtual else "monotonic")
+        self._now = self._on_virtual_time(now) if virtual else now
+        return t
+
+    # ------------------------------------------------------------------------------------ the tick
+    def run(self) -> None:
+        """Queue this tick's channels and timing for the writer thread; never blocks."""
+        q = self._queue
+        n = len(q)
+        if n >= self._queue_size:
+            if self._closed:
+                raise RuntimeError(f"{self._label}: run() after shutdown()")
+            self._dropped += 1
+            return
+        v = self.vehicle
+        mem = v.mem
+        t = self._now()
+        if self._timing:
+            p = v.profiler
+            snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, getattr(v, "_drive", None))
+        else:
+            snap = (t, dict(mem.d), dict(mem.origins), 0, None, None)
+        q.append((t, time.monotonic(), snap))
+        if n >= self._high_water:
+            self._high_water = n + 1
+        self._accepted += 1
+
+
+class McapRecorder(TickRecorder):
     """A drive-loop part that records the vehicle's Memory and timing to an MCAP file.
 
     ::
@@ -43,7 +91,7 @@ class McapRecorder(BackgroundWriter):
         path: the ``.mcap`` file (created; an existing file is replaced).
         vehicle: the :class:`~asyncdonkey.loop.Vehicle` whose ``mem`` and ``profiler`` are recorded.
         channels: Memory channels to record (default: all, including ones that appear later).
-        every_tick: record every channel on every tick (default: a channel on the ticks that wrote it).
+        every_tick: record every channel on every tick (default: a channel when its value or origin changed).
         kinds: ``{channel: "image" | "laserscan" | "json" | "skip"}`` to override the kind guessed from the
             first value (:mod:`.encode`).
         gps: (latitude, longitude) channels also published as ``foxglove.LocationFix`` on ``/gps/fix``.
@@ -103,42 +151,6 @@ class McapRecorder(BackgroundWriter):
             drain_timeout_s=drain_timeout_s,
             time_fn=self._first_time,
         )
-
-    def _first_time(self) -> float:
-        """Anchor the runtime clock to the wall clock on the first record (the loop is known only then)."""
-        try:
-            clock = get_clock()
-        except RuntimeError:  # called outside an event loop (a script driving run() itself)
-            clock = None
-        now = clock.now if clock is not None else time.monotonic
-        virtual = clock is not None and clock.is_virtual
-        t = now()
-        self._sink.times = TimeMap(t, time.time_ns(), "virtual" if virtual else "monotonic")
-        self._now = self._on_virtual_time(now) if virtual else now
-        return t
-
-    # ------------------------------------------------------------------------------------ the tick
-    def run(self) -> None:
-        """Queue this tick's channels and timing for the writer thread; never blocks."""
-        q = self._queue
-        n = len(q)
-        if n >= self._queue_size:
-            if self._closed:
-                raise RuntimeError(f"{self._label}: run() after shutdown()")
-            self._dropped += 1
-            return
-        v = self.vehicle
-        mem = v.mem
-        t = self._now()
-        if self._timing:
-            p = v.profiler
-            snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, getattr(v, "_drive", None))
-        else:
-            snap = (t, dict(mem.d), dict(mem.origins), 0, None, None)
-        q.append((t, time.monotonic(), snap))
-        if n >= self._high_water:
-            self._high_water = n + 1
-        self._accepted += 1
 
     def __repr__(self) -> str:
         return f"<McapRecorder {self.path}>"

@@ -119,3 +119,22 @@ async def test_nobody_watching_costs_no_encoding():
     assert live.stats.written + live.stats.dropped == 10 and live.stats.written > 0
     assert live._sink.messages == 0
     assert set(live._sink.channels) >= {"/cam/image_array", "/n", "/asyncdonkey/tick"}  # advertised anyway
+
+
+def test_the_shipped_layout_is_the_built_one_and_shows_recorded_topics():
+    from asyncdonkey.parts.mcap.layout import build_layout, layout_path
+
+    text = layout_path().read_text().strip()
+    assert text == build_layout()
+    layout = json.loads(text)
+    found = json.dumps(layout)
+    for topic in (
+        '"/cam/image_array"',
+        "/cam/image_array/steering",
+        "/user/angle.value",
+        "/pilot/angle.value",
+        "/asyncdonkey/tick.lateness_ms",
+        "/asyncdonkey/parts",
+        "/asyncdonkey/latency",
+    ):
+        assert topic in found

@@ -275,7 +275,7 @@ class TickEncoder:
     ) -> tuple[ChannelSpec, bytes] | None:
         from foxglove.messages import Color, ImageAnnotations, Point2, PointsAnnotation, PointsAnnotationType
 
-        h, w = image.shape[:2]
+        h, w = _image_size(image)
         stamp = _stamp(ns)
         lines = []
         colors = (Color(r=0.1, g=0.9, b=0.2, a=1.0), Color(r=0.9, g=0.2, b=0.9, a=1.0))
@@ -365,6 +365,17 @@ class TickEncoder:
 
 
 # ------------------------------------------------------------------------------------------- helpers
+def _image_size(image: Any) -> tuple[int, int]:
+    if isinstance(image, np.ndarray):
+        return int(image.shape[0]), int(image.shape[1])
+    import cv2  # a JPEG handed over already encoded (a tub converted to MCAP)
+
+    decoded = cv2.imdecode(np.frombuffer(image, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    if decoded is None:
+        raise ValueError("image data is not a decodable JPEG")
+    return int(decoded.shape[0]), int(decoded.shape[1])
+
+
 def _kind_of(value: Any) -> str:
     if isinstance(value, np.ndarray) and value.dtype == np.uint8:
         if value.ndim == 3 and value.shape[2] in (1, 3) and min(value.shape[:2]) >= 8:

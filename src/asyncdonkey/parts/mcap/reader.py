@@ -12,7 +12,9 @@ array, as the tub reader returns images.
 :class:`McapTub` shows a recording as records the way :class:`~asyncdonkey.parts.tub.Tub` does, so replay and
 ``convert`` treat both alike: one record per tick that wrote the image channel, holding that frame and the
 newest value of every other channel at that tick, ``_timestamp_ms`` from the tick's log time and ``_index``
-counting records from 0.
+counting records from 0. With ``run_condition`` (say ``"recording"``), only ticks where that channel was
+truthy become records, as a :class:`~asyncdonkey.parts.tub.TubWriter` with that run condition would have
+recorded them.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..tub import TubFormatError, TubImageError
 from .encode import topic_for
 from .sink import CLOCK_METADATA, SESSION_METADATA
 
@@ -43,8 +46,9 @@ __all__ = [
 ]
 
 
-class McapReadError(Exception):
-    """A file that is not an MCAP recording (the message names the file)."""
+class McapReadError(TubFormatError):
+    """A file that is not an MCAP recording (the message names the file); a tub format error, so code that
+    opens recordings of either kind handles both alike."""
 
 
 @dataclass(frozen=True)
@@ -184,7 +188,7 @@ def decode_image(msg: Any) -> np.ndarray:
     """A ``foxglove.CompressedImage``'s pixels as the tub reader returns them: RGB (or grey) uint8."""
     img = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise ValueError(f"{msg.frame_id}: image data is not decodable ({msg.format})")
+        raise TubImageError(f"{msg.frame_id}: image data is not decodable ({msg.format or 'no format'})")
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return img
@@ -227,7 +231,9 @@ class McapRecord(Mapping[str, Any]):
 class McapTub:
     """A recording seen as tub records (see the module docstring); ``inputs`` are its Memory channels."""
 
-    def __init__(self, path: str | os.PathLike[str], image_key: str = "cam/image_array") -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], image_key: str = "cam/image_array", run_condition: str | None = None
+    ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{os.fspath(path)}: no such MCAP file")
@@ -236,6 +242,7 @@ class McapTub:
                 raise McapReadError(f"{os.fspath(path)}: not an MCAP file")
         self.base_path = str(self.path)
         self.image_key = image_key
+        self.run_condition = run_condition
         self.info = mcap_info(self.path)
         self.inputs: list[str] = [
             t[1:] for t in self.info.topics if t.startswith("/") and not t.startswith(("/asyncdonkey/", "/gps/fix"))
@@ -253,14 +260,15 @@ class McapTub:
         index = 0
         for m in read_mcap(self.path):
             if pending is not None and m.log_time_ns != pending[0]:
-                yield self._record(pending, latest, index)
-                index += 1
+                if self.run_condition is None or latest.get(self.run_condition):
+                    yield self._record(pending, latest, index)
+                    index += 1
                 pending = None
             if m.topic == image_topic:
                 pending = (m.log_time_ns, m.value)
             elif isinstance(m.value, dict) and "value" in m.value and m.topic.startswith("/"):
                 latest[m.topic[1:]] = m.value["value"]
-        if pending is not None:
+        if pending is not None and (self.run_condition is None or latest.get(self.run_condition)):
             yield self._record(pending, latest, index)
 
     def _record(self, pending: tuple[int, Any], latest: dict[str, Any], index: int) -> McapRecord:

@@ -89,7 +89,7 @@ def tub_to_mcap(
                     except OSError:
                         continue
                 values[key] = value
-            sink.write(t, tuple(TickSnapshot(t, values, dict.fromkeys(values, t), 0, None, None)))
+            sink.write(t, tuple(TickSnapshot(t, values, dict.fromkeys(values, t), 0, None, None, None)))
             n += 1
             if sink.unsynced >= 200:
                 sink.sync()

@@ -131,8 +131,10 @@ class TickSnapshot(NamedTuple):
     """ticks started in this drive when the recorder ran (the profiler's lateness sample count)"""
     profiler: Any
     """the drive's :class:`~asyncdonkey.profiler.Profiler` (``None``: no timing)"""
-    drive: Any
-    """the drive (its ``overruns`` and ``skipped`` counters), or ``None``"""
+    overruns: int | None
+    """the drive's overrun count when the recorder ran"""
+    skipped: int | None
+    """the drive's skipped-deadline count when the recorder ran"""
 
 
 class TickEncoder:
@@ -327,14 +329,13 @@ class TickEncoder:
             lateness = p.lateness.at(ticks - 1)
             duration = p.tick.at(ticks - 2)  # the previous tick: the current one has not ended
             overrun = p.overrun.at(ticks - 2)
-            drive = snap.drive
             msg = {
                 "tick": ticks,
                 "lateness_ms": None if lateness is None else lateness * 1e3,
                 "duration_ms": None if duration is None else duration * 1e3,
                 "overrun_ms": None if overrun is None else overrun * 1e3,
-                "overruns": getattr(drive, "overruns", None),
-                "skipped_deadlines": getattr(drive, "skipped", None),
+                "overruns": snap.overruns,
+                "skipped_deadlines": snap.skipped,
             }
             self._tick_count = ticks
             yield self._json_spec(TICK_TOPIC, "asyncdonkey.Tick", msg), _dumps(msg), t_ns, t_ns

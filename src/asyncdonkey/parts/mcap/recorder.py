@@ -70,9 +70,13 @@ class TickRecorder(BackgroundWriter):
         t = self._now()
         if self._timing:
             p = v.profiler
-            snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, getattr(v, "_drive", None))
+            drive = getattr(v, "_drive", None)
+            if drive is not None:
+                snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, drive.overruns, drive.skipped)
+            else:
+                snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, None, None)
         else:
-            snap = (t, dict(mem.d), dict(mem.origins), 0, None, None)
+            snap = (t, dict(mem.d), dict(mem.origins), 0, None, None, None)
         q.append((t, time.monotonic(), snap))
         if n >= self._high_water:
             self._high_water = n + 1

@@ -157,6 +157,14 @@ async def test_every_schema_reads_back_with_the_mcap_reader(tmp_path):
     assert len(ranges) == 360 and scan.start_angle == 0 and scan.end_angle == pytest.approx(math.radians(359))
     assert ranges[0] == 1.0 and ranges[270] == 2.0 and ranges[90] == pytest.approx(0.501) and ranges[180] == 0.0
 
+    # the steering drawn over each frame: angle k/100 (of ±1 = ±45°) tilts the line right of vertical
+    assert schemas["/cam/image_array/steering"] == "foxglove.ImageAnnotations"
+    overlay = msgs["/cam/image_array/steering"][9].value  # k = 10: angle 0.1
+    (line,) = overlay.points
+    (x0, y0), (x1, y1) = ((p.x, p.y) for p in line.points)
+    assert (x0, y0) == (80, 120) and y1 < y0
+    assert math.degrees(math.atan2(x1 - x0, y0 - y1)) == pytest.approx(4.5)
+
     fix = msgs["/gps/fix"][-1].value
     assert fix.latitude == pytest.approx(45.0001) and fix.longitude == 7.0
 

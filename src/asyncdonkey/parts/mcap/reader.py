@@ -281,3 +281,8 @@ class McapTub:
 
     def __iter__(self) -> Iterator[McapRecord]:
         return self.records()
+
+    def corrupt_records(self, include_deleted: bool = False) -> list[tuple[int, str, int]]:
+        """The tub reader's list of corrupt catalog lines: an MCAP file has none (a torn end after a crash is
+        not a record; :attr:`info` ``.recovered`` says whether the file was cut short)."""
+        return []

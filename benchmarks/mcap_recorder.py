@@ -10,7 +10,7 @@ odometry) written every tick by five parts, plus the loop's timing; the recorder
 * **flat out**: ``run()`` called back to back (yielding between calls) for a few seconds: ticks written per
   second by the writer thread (JPEG encoding included) and ticks the bounded queue refused.
 
-    python benchmarks/mcap_recorder.py             # about 15 s
+    python benchmarks/mcap_recorder.py             # about 35 s
     python benchmarks/mcap_recorder.py --quick     # about 5 s
     python benchmarks/mcap_recorder.py --json
 """
@@ -126,7 +126,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("asyncdonkey").setLevel(logging.ERROR)
-    seconds = 2.0 if args.quick else 6.0
+    seconds = 2.0 if args.quick else 15.0
     with tempfile.TemporaryDirectory(dir=args.dir) as root:
         res = {
             "machine": describe(),

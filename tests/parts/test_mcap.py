@@ -338,3 +338,24 @@ async def test_a_full_disk_leaves_every_synced_tick_readable(tmp_path, caplog):
     ns = [m.value["value"] for m in read_mcap(path, {"/n"})]
     assert ns[: s.durable] == list(range(1, s.durable + 1))
     assert mcap_info(path).recovered
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_value_no_schema_fits_leaves_its_channel_out_once_and_the_rest_recorded(tmp_path, caplog):
+    class Odd:
+        def run(self):
+            return object(), float("nan"), 1.0
+
+    v = Vehicle()
+    v.add(Odd(), outputs=["odd", "maybe", "fine"])
+    path = tmp_path / "odd.mcap"
+    rec = McapRecorder(path, v, timing=False, fsync=False)
+    v.add(rec)
+    await v.run(rate_hz=20, max_loop_count=5)
+    rec.shutdown()
+    assert rec.stats.bad_values == 1 and "odd" in rec.encoder.bad_channels
+    assert "'odd' is not recorded" in caplog.text
+    msgs = by_topic(path)
+    assert set(msgs) == {"/maybe", "/fine"}
+    assert [m.value["value"] for m in msgs["/maybe"]] == [None] * 5  # NaN has no JSON form: null

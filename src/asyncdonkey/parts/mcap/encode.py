@@ -35,6 +35,7 @@ with NTP during a drive, and on the virtual clock they advance with simulated ti
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -55,6 +56,8 @@ __all__ = [
     "TimeMap",
     "topic_for",
 ]
+
+logger = logging.getLogger(__name__)
 
 KINDS = ("image", "laserscan", "json", "skip")
 TICK_TOPIC = "/asyncdonkey/tick"
@@ -192,7 +195,13 @@ class TickEncoder:
         if spec is not ...:
             return spec  # type: ignore[return-value]
         kind = self._kinds.get(ch) or _kind_of(value)
-        spec = None if kind == "skip" else _make_spec(topic_for(ch), kind, value)
+        try:
+            spec = None if kind == "skip" else _make_spec(topic_for(ch), kind, value)
+        except TypeError as exc:  # a value no schema fits (an arbitrary object): leave the channel out, say so once
+            logger.warning("channel %r is not recorded: %s", ch, exc)
+            self.bad_values += 1
+            self.bad_channels[ch] = str(exc)
+            spec, kind = None, "skip"
         self._specs[ch] = spec
         self._kinds[ch] = kind
         return spec

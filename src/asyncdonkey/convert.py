@@ -28,9 +28,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .errors import AsyncdonkeyError
 from .parts.tub import Tub, TubError
 
-__all__ = ["ConvertResult", "add_convert_parser", "convert", "convert_main", "mcap_to_tub", "tub_to_mcap"]
+__all__ = [
+    "ConvertError",
+    "ConvertResult",
+    "add_convert_parser",
+    "convert",
+    "convert_main",
+    "mcap_to_tub",
+    "tub_to_mcap",
+]
 
 EXIT_USAGE = 2
 
@@ -43,7 +52,7 @@ _TUB_TYPES = {
 }
 
 
-class ConvertError(Exception):
+class ConvertError(AsyncdonkeyError, ValueError):
     """A conversion that cannot run; the message names the file and what was expected."""
 
 

@@ -35,9 +35,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DriveTiming", "add_report_parser", "load_timing", "render_html", "write_report"]
+from .errors import AsyncdonkeyError
+
+__all__ = ["DriveTiming", "ReportError", "add_report_parser", "load_timing", "render_html", "write_report"]
 
 EXIT_USAGE = 2
+
+
+class ReportError(AsyncdonkeyError, ValueError):
+    """A recording without the timing a report needs; the message names the file."""
+
+
 _COLORS = ["#2563eb", "#16a34a", "#d97706", "#9333ea", "#dc2626", "#0891b2", "#4b5563", "#db2777"]
 
 
@@ -103,7 +111,7 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
             for name, ms in v.items():
                 lat.setdefault(name, []).append((t, ms))
     if not ticks:
-        raise ValueError(f"{os.fspath(path)}: no {TICK_TOPIC} messages (recorded with timing=False?)")
+        raise ReportError(f"{os.fspath(path)}: no {TICK_TOPIC} messages (recorded with timing=False?)")
     arr = np.array(ticks, dtype=float)
     d.t, d.lateness_ms, d.duration_ms, d.overrun_ms = arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3]
     d.skipped_deadlines = last_skipped
@@ -124,7 +132,7 @@ def _load_tub(path: str | os.PathLike[str]) -> DriveTiming:
     )
     d = DriveTiming(str(tub.base_path), "tub")
     if stamps.size < 2:
-        raise ValueError(f"{tub.base_path}: fewer than two timestamped records")
+        raise ReportError(f"{tub.base_path}: fewer than two timestamped records")
     d.t = (stamps[1:] - stamps[0]) / 1e3
     d.duration_ms = np.diff(stamps)
     d.period_ms = float(np.median(d.duration_ms))

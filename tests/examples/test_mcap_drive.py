@@ -18,6 +18,7 @@ import pytest
 from example_loader import load_example
 
 from asyncdonkey import Vehicle
+from asyncdonkey.cli import main as cli_main
 from asyncdonkey.convert import convert
 from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.reader import McapTub, decode_image, read_mcap
@@ -119,14 +120,13 @@ def test_convert_a_tub_to_mcap_and_back(drive, tmp_path):
     assert [r.raw["_timestamp_ms"] for r in back] == [r["_timestamp_ms"] for r in original]
 
 
-def test_convert_refuses_to_overwrite_and_says_why(drive, tmp_path):
+def test_convert_refuses_to_overwrite_and_says_why(drive, tmp_path, capsys):
     tub, mcap = drive
-    out = subprocess.run([*CLI, "convert", str(mcap), str(tub)], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "already exists" in out.stderr and out.stderr.count("\n") == 1
-    missing = subprocess.run(
-        [*CLI, "convert", str(tmp_path / "nothing"), str(tmp_path / "x.mcap")], capture_output=True, text=True
-    )
-    assert missing.returncode == 2 and "neither a tub directory nor an MCAP file" in missing.stderr
+    assert cli_main(["convert", str(mcap), str(tub)]) == 2
+    err = capsys.readouterr().err
+    assert "already exists" in err and err.count("\n") == 1
+    assert cli_main(["convert", str(tmp_path / "nothing"), str(tmp_path / "x.mcap")]) == 2
+    assert "neither a tub directory nor an MCAP file" in capsys.readouterr().err
 
 
 class Stall:
@@ -166,14 +166,13 @@ async def test_report_draws_lateness_with_overruns_and_skipped_deadlines(tmp_pat
     assert "Lateness histogram" in page and "Time per part" in page
 
 
-def test_report_command_on_mcap_and_on_a_tub(drive, tmp_path):
+def test_report_command_on_mcap_and_on_a_tub(drive, tmp_path, capsys):
     tub, mcap = drive
-    out = subprocess.run([*CLI, "report", str(mcap), "-o", str(tmp_path / "r.html")], capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
+    assert cli_main(["report", str(mcap), "-o", str(tmp_path / "r.html")]) == 0
     page = (tmp_path / "r.html").read_text()
     assert "61 ticks" in page and "SimCamera" in page and "McapRecorder" in page
-    out = subprocess.run([*CLI, "report", str(tub), "-o", str(tmp_path / "t.html")], capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
+    assert cli_main(["report", str(tub), "-o", str(tmp_path / "t.html")]) == 0
     assert "Record intervals" in (tmp_path / "t.html").read_text()
-    bad = subprocess.run([*CLI, "report", str(tmp_path / "r.html")], capture_output=True, text=True)
-    assert bad.returncode == 2 and "asyncdonkey: error:" in bad.stderr
+    capsys.readouterr()
+    assert cli_main(["report", str(tmp_path / "r.html")]) == 2
+    assert capsys.readouterr().err.startswith("asyncdonkey: error:")

@@ -138,3 +138,17 @@ def test_the_shipped_layout_is_the_built_one_and_shows_recorded_topics():
         "/asyncdonkey/latency",
     ):
         assert topic in found
+
+
+def test_a_busy_port_is_an_error_naming_the_address():
+    from asyncdonkey.errors import AsyncdonkeyError
+    from asyncdonkey.parts.mcap.live import FoxgloveServerError
+
+    v = Vehicle()
+    first = FoxgloveServer(v, port=0)
+    try:
+        with pytest.raises(FoxgloveServerError, match=rf"127\.0\.0\.1:{first.port}") as err:
+            FoxgloveServer(v, port=first.port)
+        assert isinstance(err.value, AsyncdonkeyError) and isinstance(err.value, OSError)
+    finally:
+        first.shutdown()

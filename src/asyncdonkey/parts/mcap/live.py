@@ -21,12 +21,17 @@ import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from ...errors import AsyncdonkeyError
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 from .recorder import TickRecorder
 
-__all__ = ["FoxgloveServer"]
+__all__ = ["FoxgloveServer", "FoxgloveServerError"]
 
 logger = logging.getLogger(__name__)
+
+
+class FoxgloveServerError(AsyncdonkeyError, OSError):
+    """The WebSocket server could not start (a port in use, an address not on this machine)."""
 
 
 class _LiveSink:
@@ -120,7 +125,7 @@ class FoxgloveServer(TickRecorder):
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port, context=self._context)
         except Exception as exc:  # the SDK raises its own error types for a busy port or a bad address
-            raise OSError(f"{where}: cannot start the WebSocket server: {exc}") from exc
+            raise FoxgloveServerError(f"{where}: cannot start the WebSocket server: {exc}") from exc
         self.host = host
         self.port: int = self.server.port
         """the port the server listens on (the one chosen when ``port=0``)"""

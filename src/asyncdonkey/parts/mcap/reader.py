@@ -29,7 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..tub import TubFormatError, TubImageError
+from ..tub import TubFormatError, TubImageError, TubNotFoundError
 from .encode import topic_for
 from .sink import CLOCK_METADATA, SESSION_METADATA
 
@@ -131,7 +131,7 @@ def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
     from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 
     if not Path(path).is_file():
-        raise FileNotFoundError(f"{os.fspath(path)}: no such file")
+        raise TubNotFoundError(f"{os.fspath(path)}: no such MCAP file")
     schemas: dict[int, str] = {}
     topics: dict[str, str] = {}
     metadata: dict[str, dict[str, str]] = {}
@@ -236,7 +236,7 @@ class McapTub:
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
-            raise FileNotFoundError(f"{os.fspath(path)}: no such MCAP file")
+            raise TubNotFoundError(f"{os.fspath(path)}: no such MCAP file")
         with open(self.path, "rb") as f:
             if f.read(8) != b"\x89MCAP0\r\n":
                 raise McapReadError(f"{os.fspath(path)}: not an MCAP file")

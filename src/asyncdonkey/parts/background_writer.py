@@ -326,9 +326,9 @@ class BackgroundWriter:
             self._dropped_logged = dropped
 
     def _warn(self, key: object, msg: str, *args: Any) -> None:
-        if self._log.allow(key, time.monotonic()):
-            held = self._log.take_suppressed(key)
-            logger.warning(msg + (f" (+{held} similar)" if held else ""), self._label, *args)
+        suffix = self._log.ready(key, time.monotonic(), "similar")
+        if suffix is not None:
+            logger.warning(msg + suffix, self._label, *args)
 
     # ---------------------------------------------------------------------------------- shutdown
     def shutdown(self, timeout: float | None = None) -> None:

@@ -230,6 +230,7 @@ def make_car(
     pilot: str | Path = DEFAULT_MODEL,
     mode: str | None = None,
     record: str | Path | None = None,
+    mcap: str | Path | None = None,
     seconds: float = DEFAULT_SECONDS,
     laps: int = 0,
     ai_throttle_mult: float = 1.3,
@@ -298,6 +299,10 @@ def make_car(
         Status(v, car, seconds=seconds, laps=laps, stream=status),
         inputs=["sim/laps", "sim/cte", "sim/off_track"],
     )
+    if mcap is not None:  # the whole drive (every channel, the loop's timing) for Foxglove and `report`
+        from asyncdonkey.parts.mcap import McapRecorder
+
+        v.add(McapRecorder(mcap, v, metadata={"pilot": pilot, "mode": drive_mode}), name="McapRecorder")
     return v, car
 
 
@@ -310,6 +315,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
+    ap.add_argument("--mcap", metavar="FILE", help="record the whole drive to this MCAP file (asyncdonkey[mcap])")
     ap.add_argument(
         "--seconds",
         type=option(non_negative_float),
@@ -357,6 +363,7 @@ def build(argv: list[str]) -> Vehicle:
         pilot=args.pilot,
         mode=args.mode,
         record=args.record,
+        mcap=args.mcap,
         seconds=args.seconds,
         laps=args.laps,
         ai_throttle_mult=args.ai_throttle_mult,

@@ -150,6 +150,11 @@ def build_parser() -> argparse.ArgumentParser:
     from .donkey import add_donkey_parser
 
     add_donkey_parser(sub)
+    from .convert import add_convert_parser
+    from .report import add_report_parser
+
+    add_convert_parser(sub)
+    add_report_parser(sub)
     return parser
 
 
@@ -220,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
         from .donkey import donkey_main
 
         return donkey_main(args)
+    handler = getattr(args, "handler", None)
+    if handler is not None:  # subcommands that name their own handler (convert, report)
+        return int(handler(args))
     parser.print_help()
     return EXIT_USAGE
 

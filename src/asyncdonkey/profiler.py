@@ -63,6 +63,15 @@ class Series:
         """The newest sample, or ``None`` before the first."""
         return self._buf[(self.count - 1) % self.window] if self.count else None
 
+    def at(self, n: int) -> float | None:
+        """Sample number ``n`` (0-based, in recording order; the skipped first one not counted), or ``None`` if it
+        is not recorded yet or has left the window. Safe from another thread while the loop records: a sample
+        is stored before ``count`` counts it, and its slot is reused only ``window`` samples later."""
+        count = self.count
+        if n < 0 or n >= count or n < count - self.window:
+            return None
+        return self._buf[n % self.window]
+
     @property
     def max(self) -> float:
         """Run-long maximum of every sample recorded (the skipped first one excluded)."""

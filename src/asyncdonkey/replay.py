@@ -57,6 +57,7 @@ from .errors import AsyncdonkeyError
 from .loop import PartError, Vehicle
 from .options import option, positive_float
 from .parts.tub import Record, Tub, TubError
+from .recordings import open_recording
 
 __all__ = [
     "CSV_COLUMNS",
@@ -434,7 +435,7 @@ async def areplay(
         raise ValueError(f"replay: user_keys must name the angle and throttle channels, got {list(user_keys)}")
     if csv_path is not None and not Path(csv_path).absolute().parent.is_dir():
         raise ReplayError(f"cannot write CSV {os.fspath(csv_path)!r}: its directory does not exist")
-    tub = Tub(tub_path)
+    tub = open_recording(tub_path, image_key)  # a tub directory or an MCAP file
     missing = [k for k in (image_key, *user_keys) if k not in tub.inputs]
     if missing:
         raise ReplayError(f"{tub.base_path}: the tub records no {', '.join(missing)} (it records {tub.inputs})")

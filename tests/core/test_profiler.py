@@ -41,3 +41,13 @@ def test_report_has_donkeycar_columns_and_loop_rows():
     d = p.as_dict()
     assert d["parts"]["PWMSteering"]["max"] == pytest.approx(3.0)
     assert d["loop"]["lateness"]["max"] == pytest.approx(0.1)
+
+
+def test_at_reads_samples_by_number_while_they_are_in_the_window():
+    s = Series("x", window=4)
+    s.record(99.0)  # the skipped first sample is not numbered
+    for v in (1.0, 2.0, 3.0, 4.0, 5.0, 6.0):
+        s.record(v)
+    assert s.count == 6
+    assert [s.at(n) for n in range(6)] == [None, None, 3.0, 4.0, 5.0, 6.0]  # 0 and 1 left the window
+    assert s.at(6) is None and s.at(-1) is None  # not recorded yet / no such sample

@@ -84,6 +84,8 @@ def _image_jpeg(quality: int) -> Converter:
     imencode = cv2.imencode
 
     def encode(v: Any) -> bytes:
+        if isinstance(v, bytes | bytearray | memoryview) and bytes(v[:2]) == b"\xff\xd8":
+            return bytes(v)  # already a JPEG (a conversion copying frames between formats): kept as is
         if not isinstance(v, np.ndarray) or v.dtype != np.uint8:
             what = f"dtype {v.dtype}" if isinstance(v, np.ndarray) else type(v).__name__
             raise TypeError(f"expected a uint8 numpy image (HxWx3 RGB or HxW grey), got {what}")

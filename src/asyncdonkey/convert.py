@@ -1,0 +1,201 @@
+"""``asyncdonkey convert``: a tub into MCAP, and an MCAP recording's camera and controls into a tub.
+
+::
+
+    asyncdonkey convert data/tub_1 data/tub_1.mcap            # look at an old tub in Foxglove
+    asyncdonkey convert data/drive.mcap data/tub_2             # train on an MCAP drive with `donkey train`
+    asyncdonkey convert data/drive.mcap data/tub_2 --only-when recording
+
+**Tub → MCAP.** Each record becomes one tick at its ``_timestamp_ms``: images as ``foxglove.CompressedImage``
+(the tub's JPEG bytes copied, not re-encoded), every other value as the recorder's JSON messages, the tub's
+metadata in the ``asyncdonkey.session`` record. A tub knows nothing of origins, so each value's origin is its
+record's time (``age_ms`` 0). Deleted records are left out.
+
+**MCAP → tub.** One record per camera frame (:class:`~asyncdonkey.parts.mcap.reader.McapTub`): the frame
+(JPEG copied as is) and the newest value of every channel that fits a Tub v2 type at that tick (numbers →
+``float``, strings → ``str``, booleans → ``boolean``, arrays → ``list``; dicts, lidar scans and the loop's
+timing have no tub type and are left out). ``--only-when CHANNEL`` keeps the ticks where that channel was
+truthy, as a ``TubWriter`` with that ``run_condition`` records; ``--channels`` picks the channels. The tub
+is written with the project's own tub writer, so Donkeycar's reader (and ``donkey train``) opens it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import AsyncdonkeyError
+from .parts.tub import Tub, TubError
+
+__all__ = [
+    "ConvertError",
+    "ConvertResult",
+    "add_convert_parser",
+    "convert",
+    "convert_main",
+    "mcap_to_tub",
+    "tub_to_mcap",
+]
+
+EXIT_USAGE = 2
+
+#: JSON schema of the recorder's messages → Tub v2 type
+_TUB_TYPES = {
+    "asyncdonkey.Number": "float",
+    "asyncdonkey.String": "str",
+    "asyncdonkey.Bool": "boolean",
+    "asyncdonkey.Array": "list",
+}
+
+
+class ConvertError(AsyncdonkeyError, ValueError):
+    """A conversion that cannot run; the message names the file and what was expected."""
+
+
+@dataclass
+class ConvertResult:
+    source: str
+    destination: str
+    records: int
+    channels: list[str]
+
+
+def tub_to_mcap(
+    tub_path: str | os.PathLike[str], mcap_path: str | os.PathLike[str], *, compression: str = "zstd"
+) -> ConvertResult:
+    """Write the tub's records to a new MCAP file (see the module docstring)."""
+    from .parts.mcap.encode import TickEncoder, TickSnapshot, TimeMap
+    from .parts.mcap.sink import McapSink
+
+    tub = Tub(tub_path)
+    image_keys = [k for k, t in zip(tub.inputs, tub.types, strict=True) if t == "image_array"]
+    skipped = {k for k, t in zip(tub.inputs, tub.types, strict=True) if t == "gray16_array"}
+    kinds = {k: "image" for k in image_keys} | {k: "skip" for k in skipped}
+    encoder = TickEncoder(every_tick=True, kinds=kinds, timing=False, steering=())
+    meta = {str(k): str(v) for k, v in tub.metadata.items()} if isinstance(tub.metadata, dict) else {}
+    meta["converted_from"] = str(tub.base_path)
+    sink = McapSink(mcap_path, encoder, metadata=meta, fsync=False, compression=compression)
+    n = 0
+    try:
+        for rec in tub.records():
+            ts = rec.raw.get("_timestamp_ms")
+            if not isinstance(ts, int | float):
+                continue
+            t = float(ts) / 1000.0
+            if sink.times is None:
+                sink.times = TimeMap(t, round(float(ts) * 1e6), "tub")
+            values: dict[str, Any] = {}
+            for key, value in rec.raw.items():
+                if key.startswith("_") or key in skipped or value is None:
+                    continue
+                if key in image_keys:
+                    try:
+                        value = rec.image_path(key).read_bytes()
+                    except OSError:
+                        continue
+                values[key] = value
+            sink.write(t, tuple(TickSnapshot(t, values, dict.fromkeys(values, t), 0, None, None, None)))
+            n += 1
+            if sink.unsynced >= 200:
+                sink.sync()
+    finally:
+        sink.close()
+    return ConvertResult(str(tub.base_path), os.fspath(mcap_path), n, [k for k in tub.inputs if k not in skipped])
+
+
+def mcap_to_tub(
+    mcap_path: str | os.PathLike[str],
+    tub_path: str | os.PathLike[str],
+    *,
+    image_key: str = "cam/image_array",
+    channels: list[str] | None = None,
+    only_when: str | None = None,
+) -> ConvertResult:
+    """Write the recording's camera frames and controls to a new tub (see the module docstring)."""
+    from .parts.mcap.encode import topic_for
+    from .parts.mcap.reader import McapTub
+    from .parts.tub.appender import TubAppender
+
+    src = McapTub(mcap_path, image_key, run_condition=only_when)
+    topics = src.info.topics
+    if topic_for(image_key) not in topics:
+        raise ConvertError(f"{os.fspath(mcap_path)}: no {image_key!r} frames (its topics: {sorted(topics)})")
+    wanted = channels if channels is not None else [c for c in src.inputs if c != image_key]
+    inputs, types = [image_key], ["image_array"]
+    for ch in wanted:
+        t = _TUB_TYPES.get(topics.get(topic_for(ch), ""))
+        if t is None:
+            if channels is not None:
+                have = topics.get(topic_for(ch), "not recorded")
+                raise ConvertError(f"{os.fspath(mcap_path)}: channel {ch!r} has no tub type ({have})")
+            continue
+        inputs.append(ch)
+        types.append(t)
+    if Path(tub_path).exists():
+        raise ConvertError(f"{os.fspath(tub_path)} already exists; convert into a new tub directory")
+    meta = {k: v for k, v in src.metadata.items()}
+    meta["converted_from"] = os.fspath(mcap_path)
+    app = TubAppender(tub_path, inputs, types, meta)
+    n = 0
+    try:
+        for rec in src.records():
+            values = [rec.image_bytes(image_key), *(rec.raw.get(ch) for ch in inputs[1:])]
+            app.write(rec.raw["_timestamp_ms"] / 1000.0, values)
+            n += 1
+            if app.unsynced >= 200:
+                app.sync()
+    finally:
+        app.close()
+    return ConvertResult(os.fspath(mcap_path), str(app.base), n, inputs)
+
+
+def convert(
+    source: str | os.PathLike[str],
+    destination: str | os.PathLike[str],
+    *,
+    image_key: str = "cam/image_array",
+    channels: list[str] | None = None,
+    only_when: str | None = None,
+) -> ConvertResult:
+    """Tub directory → MCAP file, or MCAP file → tub directory, by what ``source`` is."""
+    from .recordings import is_mcap
+
+    if is_mcap(source):
+        return mcap_to_tub(source, destination, image_key=image_key, channels=channels, only_when=only_when)
+    if not Path(source).is_dir():
+        raise ConvertError(f"{os.fspath(source)}: neither a tub directory nor an MCAP file")
+    if Path(destination).exists():
+        raise ConvertError(f"{os.fspath(destination)} already exists; convert into a new file")
+    return tub_to_mcap(source, destination)
+
+
+def add_convert_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "convert",
+        help="convert a tub to MCAP, or an MCAP recording's camera and controls to a tub",
+        description="Tub directory -> MCAP file (look at it in Foxglove), or MCAP file -> tub directory "
+        "(train on it with donkey train). The direction follows the source.",
+    )
+    p.add_argument("source", help="a tub directory or an .mcap file")
+    p.add_argument("destination", help="the MCAP file or tub directory to create")
+    p.add_argument("--image-key", default="cam/image_array", help="the camera channel (default: %(default)s)")
+    p.add_argument("--channels", nargs="+", default=None, help="MCAP -> tub: the channels to keep (default: all)")
+    p.add_argument("--only-when", metavar="CHANNEL", default=None, help="MCAP -> tub: ticks where CHANNEL was true")
+    p.set_defaults(handler=convert_main)
+    return p
+
+
+def convert_main(args: argparse.Namespace) -> int:
+    try:
+        res = convert(
+            args.source, args.destination, image_key=args.image_key, channels=args.channels, only_when=args.only_when
+        )
+    except (ConvertError, TubError, OSError, ImportError) as exc:
+        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    print(f"{res.records} records: {res.source} -> {res.destination} ({', '.join(res.channels)})")
+    return 0

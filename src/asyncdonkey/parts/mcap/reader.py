@@ -1,0 +1,288 @@
+"""Reading recordings back: decoded messages, crash recovery, and a tub-like view for replay and conversion.
+
+:func:`read_mcap` yields :class:`McapMessage` (topic, times, decoded value) from any MCAP file this project
+writes. It reads the data section record by record rather than through the summary, so a file whose writer
+was killed (no summary, maybe a torn last record) gives every message up to the last complete chunk; the
+``recovered`` flag of :func:`mcap_info` says whether the file was cut short.
+
+Decoding: JSON messages become dicts; protobuf messages (the Foxglove schemas) are decoded with the schema the
+file carries (``google.protobuf``), and a ``foxglove.CompressedImage`` also gets its JPEG decoded to an RGB
+array, as the tub reader returns images.
+
+:class:`McapTub` shows a recording as records the way :class:`~asyncdonkey.parts.tub.Tub` does, so replay and
+``convert`` treat both alike: one record per tick that wrote the image channel, holding that frame and the
+newest value of every other channel at that tick, ``_timestamp_ms`` from the tick's log time and ``_index``
+counting records from 0. With ``run_condition`` (say ``"recording"``), only ticks where that channel was
+truthy become records, as a :class:`~asyncdonkey.parts.tub.TubWriter` with that run condition would have
+recorded them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..tub import TubFormatError, TubImageError, TubNotFoundError
+from .encode import topic_for
+from .sink import CLOCK_METADATA, SESSION_METADATA
+
+__all__ = [
+    "McapInfo",
+    "McapMessage",
+    "McapReadError",
+    "McapRecord",
+    "McapTub",
+    "decode_image",
+    "mcap_info",
+    "protobuf_class",
+    "read_mcap",
+]
+
+
+class McapReadError(TubFormatError):
+    """A file that is not an MCAP recording (the message names the file); a tub format error, so code that
+    opens recordings of either kind handles both alike."""
+
+
+@dataclass(frozen=True)
+class McapMessage:
+    topic: str
+    log_time_ns: int
+    publish_time_ns: int
+    schema: str
+    value: Any
+    """JSON messages as dicts; protobuf messages as ``google.protobuf`` messages."""
+
+
+@dataclass
+class McapInfo:
+    path: str
+    messages: int
+    topics: dict[str, str]
+    """topic → schema name"""
+    metadata: dict[str, dict[str, str]]
+    recovered: bool
+    """True when the file has no summary (the writer did not close it) and was read up to its last complete
+    record."""
+
+
+def _records(path: str | os.PathLike[str]) -> Iterator[Any]:
+    """The file's records in order, stopping quietly at a torn end (a crash) instead of raising."""
+    from mcap.exceptions import McapError
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as f:
+        reader = StreamReader(f, skip_magic=False, emit_chunks=False)
+        try:
+            yield from reader.records
+        except (McapError, EOFError, ValueError, KeyError) as exc:
+            # a torn record at the end; the reader cannot go past it
+            yield _Torn(str(exc))
+        except Exception as exc:  # zstd/lz4 errors on a torn chunk have their own types
+            if type(exc).__module__.split(".")[0] in ("zstandard", "lz4", "struct"):
+                yield _Torn(str(exc))
+            else:
+                raise
+
+
+@dataclass(frozen=True)
+class _Torn:
+    why: str
+
+
+def read_mcap(
+    path: str | os.PathLike[str], topics: set[str] | None = None, *, decode: bool = True
+) -> Iterator[McapMessage]:
+    """Every message of the file (or of ``topics``), in file order, decoded (``decode=False``: raw bytes)."""
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    decoders: dict[int, Any] = {}
+    for rec in _records(path):
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            ch = channels.get(rec.channel_id)
+            if ch is None or (topics is not None and ch.topic not in topics):
+                continue
+            schema = schemas.get(ch.schema_id)
+            name = schema.name if schema is not None else ""
+            value: Any = rec.data
+            if decode:
+                dec = decoders.get(ch.id)
+                if dec is None:
+                    dec = decoders[ch.id] = _decoder(ch, schema)
+                value = dec(rec.data)
+            yield McapMessage(ch.topic, rec.log_time, rec.publish_time, name, value)
+
+
+def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
+    """Topics, message count, metadata records and whether the file was cut short."""
+    from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
+
+    if not Path(path).is_file():
+        raise TubNotFoundError(f"{os.fspath(path)}: no such MCAP file")
+    schemas: dict[int, str] = {}
+    topics: dict[str, str] = {}
+    metadata: dict[str, dict[str, str]] = {}
+    n = 0
+    finished = False
+    for rec in _records(path):
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec.name
+        elif isinstance(rec, Channel):
+            topics[rec.topic] = schemas.get(rec.schema_id, "")
+        elif isinstance(rec, Message):
+            n += 1
+        elif isinstance(rec, Metadata):
+            metadata[rec.name] = dict(rec.metadata)
+        elif isinstance(rec, DataEnd | Footer):
+            finished = True
+    return McapInfo(os.fspath(path), n, topics, metadata, recovered=not finished)
+
+
+def _decoder(channel: Any, schema: Any) -> Any:
+    if channel.message_encoding == "json":
+        return lambda data: json.loads(data)
+    if channel.message_encoding == "protobuf" and schema is not None:
+        cls = protobuf_class(schema.name, schema.data)
+        return lambda data: _parse(cls, data)
+    return lambda data: data
+
+
+_PROTO_CACHE: dict[tuple[str, bytes], Any] = {}
+
+
+def protobuf_class(name: str, data: bytes) -> Any:
+    """The ``google.protobuf`` message class of schema ``name`` from its serialized ``FileDescriptorSet``."""
+    key = (name, data)
+    cls = _PROTO_CACHE.get(key)
+    if cls is None:
+        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+        fds = descriptor_pb2.FileDescriptorSet.FromString(data)
+        pool = descriptor_pool.DescriptorPool()
+        for fd in fds.file:
+            pool.Add(fd)
+        cls = _PROTO_CACHE[key] = message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+    return cls
+
+
+def _parse(cls: Any, data: bytes) -> Any:
+    msg = cls()
+    msg.ParseFromString(data)
+    return msg
+
+
+def decode_image(msg: Any) -> np.ndarray:
+    """A ``foxglove.CompressedImage``'s pixels as the tub reader returns them: RGB (or grey) uint8."""
+    img = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise TubImageError(f"{msg.frame_id}: image data is not decodable ({msg.format or 'no format'})")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img
+
+
+# ------------------------------------------------------------------------------------------ tub view
+class McapRecord(Mapping[str, Any]):
+    """One record of a :class:`McapTub`; image keys decode their JPEG on access, like the tub's ``Record``."""
+
+    __slots__ = ("_cache", "_images", "raw")
+
+    def __init__(self, raw: dict[str, Any], images: dict[str, Any]) -> None:
+        self.raw = raw
+        self._images = images
+        self._cache: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, key: str) -> Any:
+        if key in self._images:
+            img = self._cache.get(key)
+            if img is None:
+                img = self._cache[key] = decode_image(self._images[key])
+            return img
+        return self.raw[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.raw)
+
+    def __len__(self) -> int:
+        return len(self.raw)
+
+    @property
+    def index(self) -> int:
+        return self.raw["_index"]
+
+    def image_bytes(self, key: str) -> bytes:
+        """The JPEG as recorded (``convert`` copies it into a tub without re-encoding)."""
+        return bytes(self._images[key].data)
+
+
+class McapTub:
+    """A recording seen as tub records (see the module docstring); ``inputs`` are its Memory channels."""
+
+    def __init__(
+        self, path: str | os.PathLike[str], image_key: str = "cam/image_array", run_condition: str | None = None
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise TubNotFoundError(f"{os.fspath(path)}: no such MCAP file")
+        with open(self.path, "rb") as f:
+            if f.read(8) != b"\x89MCAP0\r\n":
+                raise McapReadError(f"{os.fspath(path)}: not an MCAP file")
+        self.base_path = str(self.path)
+        self.image_key = image_key
+        self.run_condition = run_condition
+        self.info = mcap_info(self.path)
+        self.inputs: list[str] = [
+            t[1:] for t in self.info.topics if t.startswith("/") and not t.startswith(("/asyncdonkey/", "/gps/fix"))
+        ]
+        self.metadata: dict[str, str] = self.info.metadata.get(SESSION_METADATA, {})
+        clock = self.info.metadata.get(CLOCK_METADATA)
+        from .encode import TimeMap
+
+        self.times = TimeMap.from_metadata(clock) if clock else None
+
+    def records(self) -> Iterator[McapRecord]:
+        image_topic = topic_for(self.image_key)
+        latest: dict[str, Any] = {}
+        pending: tuple[int, Any] | None = None  # (log time, image message) of the tick being assembled
+        index = 0
+        for m in read_mcap(self.path):
+            if pending is not None and m.log_time_ns != pending[0]:
+                if self.run_condition is None or latest.get(self.run_condition):
+                    yield self._record(pending, latest, index)
+                    index += 1
+                pending = None
+            if m.topic == image_topic:
+                pending = (m.log_time_ns, m.value)
+            elif isinstance(m.value, dict) and "value" in m.value and m.topic.startswith("/"):
+                latest[m.topic[1:]] = m.value["value"]
+        if pending is not None and (self.run_condition is None or latest.get(self.run_condition)):
+            yield self._record(pending, latest, index)
+
+    def _record(self, pending: tuple[int, Any], latest: dict[str, Any], index: int) -> McapRecord:
+        log_ns, image = pending
+        raw = dict(latest)
+        raw[self.image_key] = f"{index}_{self.image_key.replace('/', '_')}.jpg"
+        raw["_timestamp_ms"] = round(log_ns / 1e6)
+        raw["_index"] = index
+        return McapRecord(raw, {self.image_key: image})
+
+    def __iter__(self) -> Iterator[McapRecord]:
+        return self.records()
+
+    def corrupt_records(self, include_deleted: bool = False) -> list[tuple[int, str, int]]:
+        """The tub reader's list of corrupt catalog lines: an MCAP file has none (a torn end after a crash is
+        not a record; :attr:`info` ``.recovered`` says whether the file was cut short)."""
+        return []

@@ -157,12 +157,30 @@ def control_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def mcap_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for key, label in (("mcap_in_loop_20hz", "McapRecorder"), ("tub_in_loop_20hz", "TubWriter")):
+        for q in ("p50_ms", "p99_ms"):
+            rows.append((f"recording 20 Hz, {label}", f"in-loop cost {q[:3]} (ms)", _fmt(_get(d, key, q), 3), "", ""))
+    rows.append(
+        (
+            "recording, McapRecorder",
+            "ticks/s written flat out",
+            _fmt(_get(d, "mcap_flat_out", "ticks_per_s"), 0),
+            "",
+            "",
+        )
+    )
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "tub": tub_rows,
     "pilot": pilot_rows,
     "safety": safety_rows,
     "control_periods": control_rows,
+    "mcap_recorder": mcap_rows,
 }
 
 

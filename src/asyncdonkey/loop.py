@@ -122,6 +122,12 @@ class Vehicle:
         self._pending_stop: str | None = None
         self._offload = make_offload(self._executor_for_offload)
 
+    @property
+    def drive(self) -> Drive | None:
+        """The drive in progress (``None`` between runs): its live counters ``loops``, ``overruns``,
+        ``skipped`` and its ``profiler``, for parts that report on the loop while it runs."""
+        return self._drive
+
     def _new_profiler(self) -> Profiler:
         return Profiler() if self._profiler_window is None else Profiler(self._profiler_window)
 

@@ -70,7 +70,7 @@ class TickRecorder(BackgroundWriter):
         t = self._now()
         if self._timing:
             p = v.profiler
-            drive = getattr(v, "_drive", None)
+            drive = v.drive
             if drive is not None:
                 snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, drive.overruns, drive.skipped)
             else:

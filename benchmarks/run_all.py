@@ -3,6 +3,7 @@
     python benchmarks/run_all.py                  # full runs (about five minutes with Donkeycar installed)
     python benchmarks/run_all.py --quick          # short runs, for a look
     python benchmarks/run_all.py --write-readme   # `make bench`: full runs, README table and results JSON
+    python benchmarks/run_all.py --only safety --write-readme   # rerun one; the others keep their saved figures
 
 Each benchmark runs in its own process with ``--json`` (so one cannot warm up or disturb another), one after
 the other (they are timing benchmarks: running them side by side on two cores would measure each other). The
@@ -223,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
         where, when, quick = describe(with_load=True), dt.date.today().isoformat(), args.quick
         print(f"benchmarks on {where}", file=sys.stderr)
         results = {"machine": where, "date": when, "quick": quick, "donkeycar": donkeycar_version()}
+        if args.only and RESULTS.exists():
+            # a partial run updates the saved figures: the other benchmarks keep theirs
+            saved = json.loads(RESULTS.read_text())
+            results = {**saved, **results, "quick": quick or saved.get("quick", False)}
         for name in BENCHMARKS:
             if not args.only or name in args.only:
                 results[name] = run_benchmark(name, quick)

@@ -305,7 +305,8 @@ def test_a_200ms_disk_stall_is_never_seen_in_run(tmp_path):
         i += 1
         time.sleep(0.01)
     assert w.stats.written < w.stats.accepted  # the disk really was behind while we measured
-    assert max(calls) < 0.02, f"run() took {max(calls) * 1e3:.2f} ms during a 200 ms stall"
+    # waiting for the disk would take the stall's 200 ms; a loaded 2-core machine can add tens of ms to any call
+    assert max(calls) < 0.1, f"run() took {max(calls) * 1e3:.2f} ms during a 200 ms stall"
     assert float(np.median(calls)) < 0.001
     w.shutdown(timeout=0.1)  # do not wait for 40 slow writes: the rest is abandoned and counted
     s = w.stats
@@ -320,7 +321,7 @@ def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
     for i in range(20):
         t0 = time.perf_counter()
         counts.append(w.run(scene(i % 3), i / 100, 0.0, "user"))
-        assert time.perf_counter() - t0 < 0.02
+        assert time.perf_counter() - t0 < 0.5  # waiting for the gated disk would never return
     s = w.stats
     # the first record is being written (blocked), five wait, the rest were refused
     assert s.accepted in (5, 6) and s.dropped == 20 - s.accepted

@@ -24,7 +24,7 @@ from .clock import Clock
 from .errors import PartError
 from .memory import Memory
 from .pipeline import after_store, build_pipelines
-from .plan import Entry
+from .plan import Background, Entry
 from .profiler import Profiler
 from .ratelimit import LogThrottle
 from .signals import PartInterrupted
@@ -149,11 +149,11 @@ class Drive:
         for e, subscribe in self.push_sources:
             self._unsubscribe.append(subscribe(lambda value, origin, e=e: self._push_threadsafe(e, value, origin)))
         for e in self.entries:
-            if e.threaded == "thread":
+            if e.background is Background.THREAD:
                 t = threading.Thread(target=self._thread_main, args=(e,), name=f"part:{e.name}", daemon=True)
                 self.threads.append((e, t))
                 t.start()
-            elif e.threaded == "task":
+            elif e.background is Background.TASK:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
                 task.add_done_callback(lambda t, e=e: self._task_done(e, t))
                 self.tasks.append((e, task))

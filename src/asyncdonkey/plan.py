@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import enum
 import inspect
 import logging
 import math
@@ -34,7 +35,7 @@ from typing import Any, Literal
 from .errors import OutputCountError, PartSpecError, PartTimeoutError
 from .memory import Memory
 
-__all__ = ["AGE_SUFFIX", "Entry", "OnError", "build_entry"]
+__all__ = ["AGE_SUFFIX", "Background", "Entry", "OnError", "build_entry"]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
@@ -47,6 +48,21 @@ _INF = math.inf
 _DONKEYCAR_ACTUATOR_MODULES = ("donkeycar.parts.actuator",)
 
 
+class Background(enum.Enum):
+    """What runs beside the ticks for a part, decided at ``add()``."""
+
+    NONE = "none"  #: nothing: the part only runs in the tick
+    THREAD = "thread"  #: Donkeycar's threaded part: its sync ``update()`` loops in a thread of its own
+    TASK = "task"  #: an ``async def update()``: a task on the drive's event loop
+
+
+def background_of(threaded: bool, async_update: bool) -> Background:
+    """An ``async def update()`` is always a task; a sync one runs in a thread only for ``threaded=True``."""
+    if async_update:
+        return Background.TASK
+    return Background.THREAD if threaded else Background.NONE
+
+
 class Entry:
     """One part as the tick sees it. Everything except the per-run fields is fixed at ``add()``."""
 
@@ -54,6 +70,7 @@ class Entry:
         "actuator",
         "args",
         "awaits",
+        "background",
         "call",
         "errors",
         "executor",
@@ -75,7 +92,6 @@ class Entry:
         "shutdown_timeout",
         "store",
         "store_fixed",
-        "threaded",
         "timeout",
         "trigger",
     )
@@ -190,7 +206,7 @@ def build_entry(
     e.on_error = on_error
     e.shutdown_timeout = float(shutdown_timeout)
     e.timeout = None if timeout is None else float(timeout)
-    e.threaded = "thread" if threaded and not async_update else ("task" if async_update else None)
+    e.background = background_of(threaded, async_update)
     e.executor = executor
     e.awaits = awaits
     e.pipelined = pipelined

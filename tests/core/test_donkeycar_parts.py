@@ -8,6 +8,7 @@ from donkeycar.parts.transform import Lambda, PIDController
 from donkeycar.vehicle import Vehicle as DonkeyVehicle
 
 from asyncdonkey import Vehicle
+from asyncdonkey.plan import Background
 
 
 class Script:
@@ -68,7 +69,7 @@ async def test_a_donkeycar_vehicle_converts_with_its_parts_and_memory():
     dk.add(Lambda(lambda c: c * 2), inputs=["constant"], outputs=["doubled"])
     dk.add(Lambda(lambda: "ran"), outputs=["cond_part"], run_condition="never_set")
     v = Vehicle.from_donkeycar(dk)
-    assert [e.threaded for e in v.parts] == ["thread", None, None]
+    assert [e.background for e in v.parts] == [Background.THREAD, Background.NONE, Background.NONE]
     await v.run(20, 2)
     assert v.mem["doubled"] == 6
     assert "cond_part" not in v.mem

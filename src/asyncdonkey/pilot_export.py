@@ -34,17 +34,24 @@ that need it, so importing this module (for :func:`linear_features`, say) works 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
 __all__ = [
+    "DONKEY_CONVS",
+    "DONKEY_DENSE",
     "FEATURE_SIZE",
     "IMAGE_SHAPE",
     "INPUT_NAME",
     "IR_VERSION",
     "OPSET",
+    "SMALL_CONVS",
+    "SMALL_DENSE",
+    "DonkeyLinearWeights",
+    "donkey_linear_weights",
     "export_donkey_linear_shaped",
     "export_linear_pilot",
     "linear_features",
@@ -143,8 +150,75 @@ def export_linear_pilot(path: str | os.PathLike[str], W: np.ndarray, b: np.ndarr
     return _save(path, nodes, inits, outputs, layout, "asyncdonkey_linear_pilot")
 
 
+#: Donkeycar's ``KerasLinear`` convolutions: (filters, kernel, stride), valid padding, Relu.
+DONKEY_CONVS: tuple[tuple[int, int, int], ...] = ((24, 5, 2), (32, 5, 2), (64, 5, 2), (64, 3, 1), (64, 3, 1))
+#: Donkeycar's ``KerasLinear`` dense layers (Relu) before the two heads.
+DONKEY_DENSE: tuple[int, ...] = (100, 50)
+#: A Donkeycar-shaped model small enough to commit (tens of kB): the test models built with TensorFlow.
+SMALL_CONVS: tuple[tuple[int, int, int], ...] = ((8, 5, 2), (12, 5, 2), (16, 5, 2), (16, 3, 2))
+SMALL_DENSE: tuple[int, ...] = (16,)
+
+
+@dataclass(frozen=True)
+class DonkeyLinearWeights:
+    """Seeded weights of a Donkeycar-shaped linear model, in one neutral form for every exporter.
+
+    ``convs``: ``(weight (filters, channels, k, k), bias (filters,), stride)`` per convolution (ONNX's OIHW;
+    Keras wants ``weight.transpose(2, 3, 1, 0)``); ``dense``: ``(weight (in, out), bias (out,))`` per Relu layer
+    on the features flattened channels-last (Keras's order); ``heads``: the angle then the throttle head, each
+    ``(weight (in, 1), bias (1,))``.
+    """
+
+    convs: tuple[tuple[np.ndarray, np.ndarray, int], ...]
+    dense: tuple[tuple[np.ndarray, np.ndarray], ...]
+    heads: tuple[tuple[np.ndarray, np.ndarray], ...]
+    feature_shape: tuple[int, int, int]
+    """rows, columns, channels after the last convolution."""
+
+
+def donkey_linear_weights(
+    seed: int = 0,
+    convs: tuple[tuple[int, int, int], ...] = DONKEY_CONVS,
+    dense: tuple[int, ...] = DONKEY_DENSE,
+    width: float = 1.0,
+) -> DonkeyLinearWeights:
+    """He-initialised weights from ``seed`` for the given layers (zero biases but the heads' small ones).
+
+    The same arrays for the same arguments on every machine (numpy's ``default_rng``), which is what lets a
+    model built elsewhere (with TensorFlow, say) be checked against an ONNX model of the same weights."""
+    rng = np.random.default_rng(seed)
+    channels, h, w = IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1]
+    conv_w = []
+    for filters, k, stride in convs:
+        fan_in = channels * k * k
+        weight = rng.normal(0.0, np.sqrt(2.0 / fan_in), (filters, channels, k, k)).astype(np.float32)
+        conv_w.append((weight, np.zeros(filters, np.float32), stride))
+        channels = filters
+        h, w = (h - k) // stride + 1, (w - k) // stride + 1
+        if h < 1 or w < 1:
+            raise ValueError(f"donkey_linear_weights: convolutions {convs} shrink a {IMAGE_SHAPE} frame to nothing")
+    width = channels * h * w
+    dense_w = []
+    for units in dense:
+        weight = rng.normal(0.0, np.sqrt(2.0 / width), (width, units)).astype(np.float32)
+        dense_w.append((weight, np.zeros(units, np.float32)))
+        width = units
+    heads = []
+    for _ in range(2):
+        # small heads keep the untrained outputs inside [-1, 1] most of the time
+        head = rng.normal(0.0, 0.1 / np.sqrt(width), (width, 1)).astype(np.float32)
+        heads.append((head, np.zeros(1, np.float32)))
+    return DonkeyLinearWeights(tuple(conv_w), tuple(dense_w), tuple(heads), (h, w, channels))
+
+
 def export_donkey_linear_shaped(
-    path: str | os.PathLike[str], seed: int = 0, layout: Layout = "NHWC", *, width: float = 1.0
+    path: str | os.PathLike[str],
+    seed: int = 0,
+    layout: Layout = "NHWC",
+    *,
+    convs: tuple[tuple[int, int, int], ...] = DONKEY_CONVS,
+    dense: tuple[int, ...] = DONKEY_DENSE,
+    width: float = 1.0,
 ) -> Path:
     """Write a model with the layers of Donkeycar's ``KerasLinear`` and random (seeded) weights.
 
@@ -154,59 +228,46 @@ def export_donkey_linear_shaped(
     Conv 24 5x5/2, 32 5x5/2, 64 5x5/2, 64 3x3/1, 64 3x3/1 (valid padding, Relu), flatten, Dense 100 and 50
     (Relu), then two Dense(1) heads ``n_outputs0`` (angle) and ``n_outputs1`` (throttle), each ``[1, 1]``, as
     tf2onnx names Donkeycar's outputs. Dropout layers do nothing at inference and are left out. The weights
-    are He-initialised from ``seed``, so the compute is realistic and the bytes are the same every time; it
-    does not drive.
+    are :func:`donkey_linear_weights` of ``seed``, so the compute is realistic and the bytes are the same every
+    time; it does not drive. ``convs`` and ``dense`` change the layers (:data:`SMALL_CONVS`,
+    :data:`SMALL_DENSE`: the small model of the committed TFLite test files); ``width`` then scales the
+    convolutions' filter counts.
     """
     onnx, helper, numpy_helper = _onnx()
-    rng = np.random.default_rng(seed)
+    if not (isinstance(width, int | float) and width > 0):
+        raise ValueError(f"export_donkey_linear_shaped: width must be a positive number, got {width!r}")
+    if width != 1.0:
+        convs = tuple((max(1, round(filters * width)), k, stride) for filters, k, stride in convs)
+    weights = donkey_linear_weights(seed, convs, dense)
     nodes: list[Any] = []
     inits: list[Any] = []
     src = _nhwc_input(nodes, helper, layout)
     nodes.append(helper.make_node("Transpose", [src], ["x_nchw"], perm=[0, 3, 1, 2]))
     x = "x_nchw"
-    channels, h, w = IMAGE_SHAPE[2], IMAGE_SHAPE[0], IMAGE_SHAPE[1]
-    if not (isinstance(width, int | float) and width > 0):
-        raise ValueError(f"export_donkey_linear_shaped: width must be a positive number, got {width!r}")
-    for i, (base, k, stride) in enumerate(((24, 5, 2), (32, 5, 2), (64, 5, 2), (64, 3, 1), (64, 3, 1))):
-        filters = max(1, round(base * width))
-        fan_in = channels * k * k
-        weight = rng.normal(0.0, np.sqrt(2.0 / fan_in), (filters, channels, k, k)).astype(np.float32)
-        inits += [
-            numpy_helper.from_array(weight, f"conv{i}_w"),
-            numpy_helper.from_array(np.zeros(filters, np.float32), f"conv{i}_b"),
-        ]
+    for i, (weight, bias, stride) in enumerate(weights.convs):
+        k = weight.shape[2]
+        inits += [numpy_helper.from_array(weight, f"conv{i}_w"), numpy_helper.from_array(bias, f"conv{i}_b")]
         nodes += [
             helper.make_node(
                 "Conv", [x, f"conv{i}_w", f"conv{i}_b"], [f"conv{i}"], kernel_shape=[k, k], strides=[stride, stride]
             ),
             helper.make_node("Relu", [f"conv{i}"], [f"relu{i}"]),
         ]
-        x, channels = f"relu{i}", filters
-        h, w = (h - k) // stride + 1, (w - k) // stride + 1
+        x = f"relu{i}"
     # Keras flattens channels-last: transpose back before the reshape so the Dense weights mean the same
     nodes.append(helper.make_node("Transpose", [x], ["features_nhwc"], perm=[0, 2, 3, 1]))
-    flat = channels * h * w
+    flat = int(np.prod(weights.feature_shape))
     inits.append(numpy_helper.from_array(np.array([1, flat], np.int64), "flat_shape"))
     nodes.append(helper.make_node("Reshape", ["features_nhwc", "flat_shape"], ["flat"]))
-    x, width = "flat", flat
-    for i, units in enumerate((100, 50)):
-        inits += [
-            numpy_helper.from_array(
-                rng.normal(0.0, np.sqrt(2.0 / width), (width, units)).astype(np.float32), f"fc{i}_w"
-            ),
-            numpy_helper.from_array(np.zeros(units, np.float32), f"fc{i}_b"),
-        ]
+    x = "flat"
+    for i, (weight, bias) in enumerate(weights.dense):
+        inits += [numpy_helper.from_array(weight, f"fc{i}_w"), numpy_helper.from_array(bias, f"fc{i}_b")]
         nodes.append(helper.make_node("Gemm", [x, f"fc{i}_w", f"fc{i}_b"], [f"fc{i}"]))
         nodes.append(helper.make_node("Relu", [f"fc{i}"], [f"fc{i}_relu"]))
-        x, width = f"fc{i}_relu", units
+        x = f"fc{i}_relu"
     outputs = []
-    for i in range(2):
-        # small heads keep the untrained outputs inside [-1, 1] most of the time
-        head = rng.normal(0.0, 0.1 / np.sqrt(width), (width, 1)).astype(np.float32)
-        inits += [
-            numpy_helper.from_array(head, f"out{i}_w"),
-            numpy_helper.from_array(np.zeros(1, np.float32), f"out{i}_b"),
-        ]
+    for i, (head, bias) in enumerate(weights.heads):
+        inits += [numpy_helper.from_array(head, f"out{i}_w"), numpy_helper.from_array(bias, f"out{i}_b")]
         nodes.append(helper.make_node("Gemm", [x, f"out{i}_w", f"out{i}_b"], [f"n_outputs{i}"]))
         outputs.append(_float_tensor(helper, onnx, f"n_outputs{i}", [1, 1]))
     return _save(path, nodes, inits, outputs, layout, "donkey_linear_shaped")

@@ -155,6 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_convert_parser(sub)
     add_report_parser(sub)
+    from .quantize import add_quantize_parser
+
+    add_quantize_parser(sub)
     return parser
 
 

@@ -4,7 +4,7 @@
     make run ARGS="-- --seconds 120"                        # longer (0: until Ctrl-C)
     make run ARGS="-- --laps 3"                             # until 3 laps (no time limit unless --seconds)
     make run ARGS="-- --pilot user --record data/tub"       # the scripted "user" drives and records
-    make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model
+    make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model (.onnx or .tflite)
     asyncdonkey run examples/car.py --hz 50 -- --laps 3     # any rate; stop after 3 laps
 
 The parts are the ones a real car uses, in Donkeycar's order and with Donkeycar's channel names; only the
@@ -18,7 +18,7 @@ SimTelemetry                                                              sim/x,
 SimController             sim/x, sim/y, sim/heading                       user/angle, user/throttle, user/mode,
                                                                           recording
 PilotCondition            user/mode                                       run_pilot
-OnnxPilot (if run_pilot)  cam/image_array                                 pilot/angle, pilot/throttle
+pilot (if run_pilot)      cam/image_array                                 pilot/angle, pilot/throttle
 DriveMode                 user/mode, user/*, pilot/*                      angle, throttle
 SimCar                    angle, throttle
 TubWriter (if recording)  cam/image_array, user/*, pilot/*, sim/cte ...   tub/num_records
@@ -240,7 +240,7 @@ def make_car(
     pilot_mode: str = "frame",
     pilot_delay: float = 0.0,
 ) -> tuple[Vehicle, SimCar]:
-    """Assemble the simulated car. ``pilot`` is an ONNX model path or ``"user"`` (no pilot).
+    """Assemble the simulated car. ``pilot`` is a model path (``.onnx`` or ``.tflite``) or ``"user"`` (no pilot).
 
     ``pilot_mode``: ``"in-order"`` (the pilot inside the tick, as Donkeycar runs it), ``"pipelined"`` (beside
     the ticks, started each tick) or ``"frame"`` (beside the ticks, started by each new camera frame, with the
@@ -269,10 +269,10 @@ def make_car(
         raise ValueError(f"car.py --pilot-mode: expected one of {', '.join(PILOT_MODES)}, got {pilot_mode!r}")
     react = not user_only and pilot_mode == "frame"
     if not user_only:
-        from asyncdonkey.parts.pilot import OnnxPilot  # onnxruntime loads only when a pilot drives
+        from asyncdonkey.parts.pilot import load_pilot  # the runtime loads only when a pilot drives
 
         v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
-        model: Any = OnnxPilot(pilot)
+        model: Any = load_pilot(pilot)
         v.add(
             SlowedPilot(model, pilot_delay) if pilot_delay > 0 else model,
             inputs=["cam/image_array"],
@@ -280,7 +280,7 @@ def make_car(
             run_condition="run_pilot",
             pipelined=pilot_mode != "in-order",
             trigger="cam/image_array" if pilot_mode == "frame" else None,
-            name="OnnxPilot",
+            name=type(model).__name__,
         )
     v.add(
         DriveMode(ai_throttle_mult=ai_throttle_mult),
@@ -311,7 +311,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument(
         "--pilot",
         default=str(DEFAULT_MODEL),
-        help="ONNX model to drive on, or 'user' for the scripted driver alone (default: the shipped sim pilot)",
+        help="model to drive on (.onnx, or .tflite with the tflite extra), or 'user' for the scripted driver alone (default: the shipped sim pilot)",
     )
     ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")

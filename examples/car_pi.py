@@ -1,4 +1,4 @@
-"""A Raspberry Pi donkey car: camera, gamepad, optional ONNX pilot, PCA9685 steering and ESC, IMU, recording.
+"""A Raspberry Pi donkey car: camera, gamepad, optional ONNX or TFLite pilot, PCA9685 steering and ESC, IMU, recording.
 
 Run it with::
 
@@ -12,7 +12,7 @@ overridden after ``--`` as ``NAME=VALUE``. The parts, in tick order::
     CvCamera            -> cam/image_array
     JoystickController  -> user/angle, user/throttle, user/mode, recording
     PilotCondition      user/mode -> run_pilot                                     (with --model)
-    OnnxPilot           cam/image_array -> pilot/angle, pilot/throttle             (with --model, run_pilot)
+    pilot (load_pilot)  cam/image_array -> pilot/angle, pilot/throttle             (with --model, run_pilot)
     DriveMode           user/mode, user/*, pilot/* -> angle, throttle
     PWMSteering         angle
     PWMThrottle         throttle, throttle@age  (stopped when the command is older than 0.25 s)
@@ -133,7 +133,7 @@ def _convert(name: str, text: str, current: Any) -> Any:
 
 def parse_args(argv: list[str] | None) -> tuple[PiCarConfig, argparse.Namespace]:
     parser = argparse.ArgumentParser(prog="car_pi.py", description="Raspberry Pi donkey car")
-    parser.add_argument("--model", help="ONNX pilot (enables the local_angle and local modes)")
+    parser.add_argument("--model", help="pilot model, .onnx or .tflite (enables the local_angle and local modes)")
     parser.add_argument("--tub", help="record into this tub (default: DATA_PATH)")
     parser.add_argument("settings", nargs="*", metavar="NAME=VALUE", help="override a setting (Donkeycar names)")
     args = parser.parse_args(argv or [])
@@ -176,11 +176,11 @@ def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig 
     v.add(controller, outputs=controller.outputs, name="joystick")
 
     if args.model:
-        from asyncdonkey.parts.pilot import OnnxPilot
+        from asyncdonkey.parts.pilot import load_pilot
 
         v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
         v.add(
-            OnnxPilot(args.model),
+            load_pilot(args.model),
             inputs=["cam/image_array"],
             outputs=["pilot/angle", "pilot/throttle"],
             run_condition="run_pilot",

@@ -12,7 +12,8 @@ A replay is an ordinary :class:`~asyncdonkey.loop.Vehicle` with three parts:
 1. a **tub player** that, each tick, sleeps until the next record's time and emits its image and user values
    (``_timestamp_ms`` relative to the first record played; records without an image or user values are
    counted and passed over);
-2. the **pilot** (:class:`~asyncdonkey.parts.pilot.OnnxPilot`, or any object with ``predict(image) ->
+2. the **pilot** (a model file loaded with :func:`~asyncdonkey.parts.pilot.load_pilot`: ``.onnx`` or
+   ``.tflite``; or any object with ``predict(image) ->
    (angle, throttle)``, or such a callable), timed in real time with :func:`time.perf_counter`;
 3. a **scorer** collecting one :class:`ReplayRow` per record.
 
@@ -397,8 +398,8 @@ def replay(
 ) -> ReplayReport:
     """Replay the tub at ``tub_path`` through ``pilot`` and compare with the recorded user values.
 
-    ``pilot`` is a model path (loaded with :class:`~asyncdonkey.parts.pilot.OnnxPilot` and shut down at the
-    end), an object with ``predict(image) -> (angle, throttle)``, or such a callable. ``speed=None`` replays on
+    ``pilot`` is a model path (``.onnx`` or ``.tflite``, loaded with :func:`~asyncdonkey.parts.pilot.load_pilot`
+    and shut down at the end), an object with ``predict(image) -> (angle, throttle)``, or such a callable. ``speed=None`` replays on
     the virtual clock (as fast as the CPU allows, deterministic); a number replays on a real event loop at that
     multiple of the recorded pace. ``csv_path`` also writes the per-record rows.
 
@@ -488,17 +489,15 @@ def _resolve_pilot(
         path = Path(pilot)
         if not path.is_file():
             raise ReplayError(f"model {str(path)!r} not found")
-        try:
-            from .parts.pilot import OnnxPilot
-        except ImportError as exc:
-            raise ReplayError(f"cannot load ONNX models: {exc}") from exc
+        from .parts.pilot import load_pilot
+
         shape = frame_shape()
         kwargs: dict[str, Any] = {} if shape is None or len(shape) != 3 else {"image_shape": shape}
         try:
-            onnx_pilot = OnnxPilot(path, offload=False, **kwargs)
-        except (OSError, ValueError) as exc:
+            model_pilot = load_pilot(path, offload=False, **kwargs)
+        except (OSError, ValueError, ImportError) as exc:
             raise ReplayError(str(exc)) from exc
-        return onnx_pilot.predict, str(path), onnx_pilot
+        return model_pilot.predict, str(path), model_pilot
     predict = getattr(pilot, "predict", None)
     if callable(predict):
         return predict, type(pilot).__name__, None
@@ -604,7 +603,7 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
         "compare the pilot's angle and throttle with the recorded user values.",
     )
     p.add_argument("tub", help="the tub directory, e.g. data/tub_1")
-    p.add_argument("--pilot", required=True, help="the ONNX model to replay, e.g. models/pilot.onnx")
+    p.add_argument("--pilot", required=True, help="the model to replay, .onnx or .tflite, e.g. models/pilot.onnx")
     p.add_argument("--csv", metavar="FILE", default=None, help="write one row per record to FILE")
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     p.add_argument(

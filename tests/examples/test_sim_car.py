@@ -1,6 +1,7 @@
 """examples/car.py, the README's `make run`: the simulated car drives laps on the virtual clock."""
 
 import io
+from pathlib import Path
 
 import pytest
 from example_loader import load_example
@@ -47,6 +48,19 @@ async def test_the_shipped_pilot_drives_three_clean_laps():
     assert status.abs_cte_max < 0.25  # the road is 1 m wide: never near its edge
     assert v.mem["user/mode"] == "local" and v.mem["pilot/angle"] is not None
     assert report.parts["OnnxPilot"]["count"] > 0  # inference ran, and shows in the profiler
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_the_shipped_tflite_pilot_drives_a_clean_lap():
+    """`--pilot examples/models/sim_pilot.tflite`: the same pilot converted to TFLite, run by LiteRT."""
+    model = Path(car_py.__file__).resolve().parent / "models" / "sim_pilot.tflite"
+    v, car = car_py.make_car(pilot=model, seconds=0, laps=1, status=None)
+    status = next(e.part for e in v.parts if e.name == "Status")
+    report = await v.run(rate_hz=20, max_loop_count=20 * 120)
+    assert report.stop_reason == "stop()" and car.sim.laps.laps == 1
+    assert car.sim.respawns == 0 and status.off_track_ticks == 0
+    assert report.parts["TflitePilot"]["count"] > 0
 
 
 @pytest.mark.asyncio

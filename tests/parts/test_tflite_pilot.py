@@ -271,3 +271,26 @@ def test_committed_simulator_tflite_pilot_matches_its_onnx_original():
     tfl = load_pilot(ROOT / "examples" / "models" / "sim_pilot.tflite", offload=False)
     for image in sim_frames():
         np.testing.assert_allclose(tfl.predict(image), onnx_pilot.predict(image), atol=1e-5)
+
+
+# ----------------------------------------------------------------------------------- replay
+def test_replay_takes_a_tflite_pilot_and_scores_it_as_its_onnx_original(tmp_path):
+    from asyncdonkey.parts.tub import TubWriter
+    from asyncdonkey.replay import ReplayError, replay
+
+    tub = tmp_path / "tub"
+    writer = TubWriter(
+        tub, inputs=["cam/image_array", "user/angle", "user/throttle"], types=["image_array", "float", "float"]
+    )
+    for k, image in enumerate(sim_frames(12)):
+        writer.run(image, 0.02 * k, 0.3)
+    writer.shutdown()
+    models = ROOT / "examples" / "models"
+    a = replay(tub, models / "sim_pilot.onnx")
+    b = replay(tub, models / "sim_pilot.tflite")
+    assert a.records == b.records == 12
+    assert b.pilot.endswith("sim_pilot.tflite")
+    assert b.angle_mae == pytest.approx(a.angle_mae, abs=1e-5)
+    assert b.throttle_mae == pytest.approx(a.throttle_mae, abs=1e-5)
+    with pytest.raises(ReplayError, match=r"probe_66x200\.tflite wants input .*frames are 120x160x3"):
+        replay(tub, MODELS / "probe_66x200.tflite")

@@ -311,7 +311,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument(
         "--pilot",
         default=str(DEFAULT_MODEL),
-        help="model to drive on (.onnx, or .tflite with the tflite extra), or 'user' for the scripted driver alone (default: the shipped sim pilot)",
+        help="model to drive on (.onnx, or .tflite with the tflite extra), or 'user' for the scripted driver "
+        "alone (default: the shipped sim pilot)",
     )
     ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")

@@ -399,9 +399,9 @@ def replay(
     """Replay the tub at ``tub_path`` through ``pilot`` and compare with the recorded user values.
 
     ``pilot`` is a model path (``.onnx`` or ``.tflite``, loaded with :func:`~asyncdonkey.parts.pilot.load_pilot`
-    and shut down at the end), an object with ``predict(image) -> (angle, throttle)``, or such a callable. ``speed=None`` replays on
-    the virtual clock (as fast as the CPU allows, deterministic); a number replays on a real event loop at that
-    multiple of the recorded pace. ``csv_path`` also writes the per-record rows.
+    and shut down at the end), an object with ``predict(image) -> (angle, throttle)``, or such a callable.
+    ``speed=None`` replays on the virtual clock (as fast as the CPU allows, deterministic); a number replays on a
+    real event loop at that multiple of the recorded pace. ``csv_path`` also writes the per-record rows.
 
     Must be called outside a running event loop (use :func:`areplay` inside one). Raises :class:`ReplayError`
     (bad model, pilot failure, a tub without the channels) and :class:`~asyncdonkey.parts.tub.TubError`

@@ -114,10 +114,19 @@ def tub_rows(d: dict[str, Any]) -> list[Row]:
 def pilot_rows(d: dict[str, Any]) -> list[Row]:
     rows: list[Row] = []
     for m in d.get("models", []):
-        name = m.get("model", "?")
-        rows.append((f"pilot: {name}", "bare session.run p50 (ms)", _fmt(_get(m, "session_run", "p50_ms"), 3), "", ""))
-        rows.append((f"pilot: {name}", "OnnxPilot.predict p50 (ms)", _fmt(_get(m, "predict", "p50_ms"), 3), "", ""))
-        rows.append((f"pilot: {name}", "predict overhead (%)", _fmt(m.get("predict_overhead_pct"), 1), "", ""))
+        for f in m.get("forms", []):
+            name = f"pilot: {m.get('model', '?')}, {f.get('form', '?')}"
+            if "missing" in f:
+                rows.append((name, "predict p50 / p99 (ms)", "n/a (model not built)", "", ""))
+                continue
+            p50, p99 = _get(f, "predict", "p50_ms"), _get(f, "predict", "p99_ms")
+            over = f.get("predict_overhead_pct")
+            shown = f"{_fmt(p50, 3)} / {_fmt(p99, 3)} ({over:+.1f} %)" if over is not None else "n/a"
+            rows.append((name, "predict p50 / p99 (ms) (overhead vs bare runtime)", shown, "", ""))
+            mae, diff = f.get("replay_angle_mae"), f.get("angle_diff_vs_float32")
+            rows.append(
+                (name, "replay angle MAE (mean abs diff vs float32)", f"{_fmt(mae, 4)} ({_fmt(diff, 4)})", "", "")
+            )
     return rows
 
 

@@ -17,7 +17,8 @@ What it writes:
     ``n_outputs0`` = angle and ``n_outputs1`` = throttle) with the weights of
     ``donkey_linear_weights(0, SMALL_CONVS, SMALL_DENSE)``, built as a Keras model and converted as Donkeycar's
     ``keras_to_tflite`` does: float32 (no options), and full-integer quantization with a representative dataset
-    of simulator frames, with uint8 input and outputs (Donkeycar's choice, for the Coral TPU) or int8 ones.
+    of simulator frames, with uint8 input and outputs (Donkeycar's choice, for the Coral TPU) or int8 ones. The
+    simulator's frames do not reach full white, so the input scale is not 1/255: the pilot's table path.
     ``export_donkey_linear_shaped(..., convs=SMALL_CONVS, dense=SMALL_DENSE)`` writes the same model as ONNX.
 ``tests/models/probe_*.tflite``
     Tiny models that output chosen input values (flat indices :data:`PROBE_PIXELS`), so a test sees exactly what
@@ -25,7 +26,8 @@ What it writes:
     the pilot must refuse (three values, a 66x200 input, two inputs).
 ``examples/models/sim_pilot{,.int8}.tflite``
     The simulator's linear pilot (``examples/models/sim_pilot.onnx``: the same features and weights) in float32
-    and in full-integer int8, for ``examples/car.py --pilot examples/models/sim_pilot.tflite``.
+    and in full-integer int8 (calibrated on the frames plus a black and a white one, so its input scale is
+    1/255), for ``examples/car.py --pilot examples/models/sim_pilot.tflite``.
 ``benchmarks/models/donkey_linear{,.int8}.tflite`` (``--bench``)
     The full-size Donkeycar-shaped model of ``benchmarks/pilot.py`` (3.3 MB in float32, too big to commit).
 """
@@ -65,6 +67,12 @@ def simulator_frames(n: int = CALIBRATION_FRAMES) -> np.ndarray:
         sim.reset(s=float(k) * 0.9, offset=float(rng.uniform(-0.25, 0.25)))
         frames.append(sim.render().astype(np.float32) / np.float32(255.0))
     return np.stack(frames)
+
+
+def full_range(frames: np.ndarray) -> np.ndarray:
+    """The frames plus a black and a white one: the calibrated input range is then exactly [0, 1], the input scale
+    1/255, and the pilot feeds the camera's bytes to the model as they are (no per-pixel table)."""
+    return np.concatenate([frames, np.zeros_like(frames[:1]), np.ones_like(frames[:1])])
 
 
 def representative(frames: np.ndarray):
@@ -184,7 +192,7 @@ def sim_pilot(tf, keras, frames) -> dict[str, bytes]:
     )
     return {
         "sim_pilot": keras_to_tflite(tf, model),
-        "sim_pilot.int8": keras_to_tflite(tf, model, frames, tf.int8),
+        "sim_pilot.int8": keras_to_tflite(tf, model, full_range(frames), tf.int8),
     }
 
 
@@ -216,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.bench:
         big = keras_linear(keras, DONKEY_CONVS, DONKEY_DENSE)
         write(BENCH_MODELS / "donkey_linear.tflite", keras_to_tflite(tf, big))
-        write(BENCH_MODELS / "donkey_linear.int8.tflite", keras_to_tflite(tf, big, frames, tf.int8))
+        write(BENCH_MODELS / "donkey_linear.int8.tflite", keras_to_tflite(tf, big, full_range(frames), tf.int8))
     return 0
 
 

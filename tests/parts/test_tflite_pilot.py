@@ -61,6 +61,7 @@ def test_full_integer_model_quantizes_the_frame_and_dequantizes_the_outputs(smal
     pilot = TflitePilot(MODELS / f"donkey_small.{kind}.tflite", offload=False)
     info = pilot.input_info
     assert info.dtype == np.dtype(kind) and info.quantized and 0 < info.scale < 0.01
+    assert pilot.encoder.mode == "table"  # calibrated on frames that never reach white: scale is not 1/255
     outs = pilot.output_info
     assert all(o.dtype == np.dtype(kind) and o.scale > 0 for o in outs)
     # the INT8 answer is the float answer to within some output quantization steps (of the 255 the calibrated
@@ -249,6 +250,7 @@ async def test_int8_pilot_drives_a_vehicle_from_its_worker_thread():
     path = ROOT / "examples" / "models" / "sim_pilot.int8.tflite"
     pilot = load_pilot(path)
     reference = load_pilot(path, offload=False)
+    assert pilot.encoder.mode == "flip"  # calibrated on [0, 1]: the int8 frame is the camera's bytes - 128
     threads = []
     original = pilot._infer
     pilot._infer = lambda image: (threads.append(threading.current_thread().name), original(image))[1]

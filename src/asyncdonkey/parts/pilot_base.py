@@ -139,16 +139,37 @@ class FrameEncoder:
 
     def encode(self, image: np.ndarray, out: np.ndarray) -> None:
         """Write ``image`` (rows, columns, 3) uint8 into ``out``: one batch item, in the model's layout and type."""
-        src = image if self.layout == "NHWC" else image.transpose(2, 0, 1)
         mode = self.mode
+        if self.layout == "NHWC":
+            if mode == "divide":
+                # widen, then divide in place: twice as fast as numpy's mixed-type divide, and the same bits
+                np.copyto(out, image, casting="unsafe")
+                np.divide(out, np.float32(255.0), out=out)
+            elif mode == "flip":  # v - 128 as int8 is v with its top bit flipped, read as int8
+                np.bitwise_xor(image, np.uint8(0x80), out=out.view(np.uint8))
+            elif mode == "copy":
+                np.copyto(out, image)
+            else:
+                self._look_up(image, out)
+            return
+        src = image.transpose(2, 0, 1)
         if mode == "divide":
             np.divide(src, np.float32(255.0), out=out, dtype=np.float32)
+        elif mode == "flip":
+            np.bitwise_xor(src, np.uint8(0x80), out=out.view(np.uint8))
         elif mode == "copy":
             np.copyto(out, src)
-        elif mode == "flip":  # v - 128 as int8 is v with its top bit flipped, read as int8
-            np.bitwise_xor(src, np.uint8(0x80), out=out.view(np.uint8))
         else:
-            out[...] = self.table[src]  # type: ignore[index]
+            np.copyto(out, self._look_up(image, None).transpose(2, 0, 1))
+
+    def _look_up(self, image: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        """The table applied to every pixel, with OpenCV's ``LUT`` (a tenth of the time of numpy's indexing)."""
+        import cv2
+
+        table = self.table.view(np.uint8)  # type: ignore[union-attr]  # int8 tables go through as their bytes
+        if out is None:
+            return cv2.LUT(image, table).view(self.dtype)
+        return cv2.LUT(np.ascontiguousarray(image), table, dst=out.view(np.uint8))
 
 
 class PilotBase:

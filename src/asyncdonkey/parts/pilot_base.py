@@ -40,6 +40,7 @@ __all__ = ["IMAGE_SHAPE", "FrameEncoder", "PilotBase", "PilotModelError", "Tenso
 IMAGE_SHAPE = (120, 160, 3)
 Layout = Literal["NHWC", "NCHW"]
 Plan = Literal["pair", "two", "angle"]
+_UINT8 = np.dtype(np.uint8)
 
 
 class PilotModelError(AsyncdonkeyError, ValueError):
@@ -303,7 +304,7 @@ class PilotBase:
         Synchronous: for replay, tests and the executor. Raises ``ValueError`` naming the part for a frame of
         the wrong shape or type, or when the model produces NaN.
         """
-        if not isinstance(image, np.ndarray) or image.shape != self.image_shape or image.dtype != np.uint8:
+        if not isinstance(image, np.ndarray) or image.shape != self.image_shape or image.dtype != _UINT8:
             got = f"{image.shape} {image.dtype}" if isinstance(image, np.ndarray) else f"a {type(image).__name__}"
             raise ValueError(f"{self.name}: cam/image_array frame is {got}; expected {self.image_shape} uint8 RGB")
         t0 = time.perf_counter()
@@ -311,8 +312,8 @@ class PilotBase:
         dq = self._dequant
         plan = self._output_plan
         if plan == "pair":
-            flat = np.ravel(outs[0])
-            angle, throttle = float(flat[0]), float(flat[1])
+            out = outs[0]
+            angle, throttle = float(out.item(0)), float(out.item(1))
             if dq[0] is not None:
                 scale, zp = dq[0]
                 angle, throttle = (angle - zp) * scale, (throttle - zp) * scale
@@ -353,7 +354,7 @@ class PilotBase:
 
 
 def _value(out: np.ndarray, dq: tuple[float, int] | None) -> float:
-    v = float(np.ravel(out)[0])
+    v = float(out.item(0))
     return v if dq is None else (v - dq[1]) * dq[0]
 
 

@@ -1,6 +1,7 @@
 """TflitePilot and load_pilot: Donkeycar-style .tflite models (float32, uint8 and int8 full-integer) built once
 with TensorFlow by examples/make_tflite_models.py and committed in tests/models/; here only LiteRT runs."""
 
+import functools
 import sys
 import threading
 from pathlib import Path
@@ -31,13 +32,19 @@ def pixels(image: np.ndarray, layout: str = "NHWC") -> tuple[float, float]:
     return float(flat[PIXELS[0]]), float(flat[PIXELS[1]])
 
 
-def sim_frames(n: int = 6) -> list[np.ndarray]:
+@functools.cache
+def _sim_frames(n: int) -> tuple[np.ndarray, ...]:
     sim = Simulator()
     out = []
     for k in range(n):
         sim.reset(s=7.0 * k + 1.0, offset=0.04 * (k - 3))
         out.append(sim.render())
-    return out
+    return tuple(out)
+
+
+def sim_frames(n: int = 6) -> list[np.ndarray]:
+    """Simulator frames from a few places on the track (rendered once per test run)."""
+    return [f.copy() for f in _sim_frames(n)]
 
 
 @pytest.fixture(scope="module")

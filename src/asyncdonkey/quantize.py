@@ -180,11 +180,11 @@ def quantize_pilot(
     except PilotModelError as exc:
         raise QuantizeError(str(exc)) from exc
 
-    ort_logger = logging.getLogger("root")
+    ort_logger = logging.getLogger()  # onnxruntime.quantization logs on the root logger
     with tempfile.TemporaryDirectory(prefix="asyncdonkey-quantize-") as tmp:
         tmp_out = Path(tmp) / "int8.onnx"
         level = ort_logger.level
-        ort_logger.setLevel(logging.ERROR)  # onnxruntime's quantizer logs advice on the root logger
+        ort_logger.setLevel(logging.ERROR)  # its advice (run quant_pre_process, ...) is not the user's business
         try:
             quantize_static(
                 str(model_path),

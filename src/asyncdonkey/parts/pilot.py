@@ -45,7 +45,6 @@ __all__ = [
     "OnnxPilot",
     "PilotBase",
     "PilotModelError",
-    "TflitePilot",
     "load_pilot",
     "physical_cores",
 ]

@@ -13,8 +13,8 @@ A replay is an ordinary :class:`~asyncdonkey.loop.Vehicle` with three parts:
    (``_timestamp_ms`` relative to the first record played; records without an image or user values are
    counted and passed over);
 2. the **pilot** (a model file loaded with :func:`~asyncdonkey.parts.pilot.load_pilot`: ``.onnx`` or
-   ``.tflite``; or any object with ``predict(image) ->
-   (angle, throttle)``, or such a callable), timed in real time with :func:`time.perf_counter`;
+   ``.tflite``; or any object with ``predict(image) -> (angle, throttle)``, or such a callable), timed in real
+   time with :func:`time.perf_counter`;
 3. a **scorer** collecting one :class:`ReplayRow` per record.
 
 Why a Vehicle and not a plain loop over the records: the pilot sees frames exactly as it would in a car

@@ -11,12 +11,11 @@ Usage, as Donkeycar wires its pilot::
 
 Notes on :class:`OnnxPilot`:
 
-Design notes:
-
-* **Off the loop thread.** ``run()`` is ``async``: inference runs in a single-thread executor owned by the
-  pilot, so serial readers, pollers and web clients keep being served while it computes, and the tick still
-  awaits the result in order. One thread, because one session and one frame at a time is all a drive loop
-  needs, and it keeps onnxruntime's own threads the only parallelism (``offload=False`` runs inline).
+* **Off the loop thread** (as every pilot part). ``run()`` is ``async``: inference runs in a single-thread
+  executor owned by the pilot, so serial readers, pollers and web clients keep being served while it computes,
+  and the tick still awaits the result in order. One thread, because one session and one frame at a time is
+  all a drive loop needs, and it keeps onnxruntime's own threads the only parallelism (``offload=False`` runs
+  inline).
 * **Low-latency session.** Intra-op threads = physical cores (hyper-threads only contend for the same
   units), thread spinning off (``session.intra_op.allow_spinning = "0"``: spinning workers would burn the
   cores the rest of the car needs between frames at 20 Hz), sequential execution (a pilot graph is a chain;
@@ -30,14 +29,11 @@ from __future__ import annotations
 import os
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from .pilot_base import IMAGE_SHAPE, PilotBase, PilotModelError, TensorInfo, _first_line, physical_cores
-
-if TYPE_CHECKING:
-    from .tflite_pilot import TflitePilot
 
 __all__ = [
     "IMAGE_SHAPE",

@@ -1,0 +1,6 @@
+"""Drive from a browser: :class:`WebController`, Donkeycar's web controller on the drive loop (``docs/web.md``)."""
+
+from .auth import WebConfigError
+from .controller import NEW_TOKEN, WEB_INPUTS, WEB_OUTPUTS, WebController
+
+__all__ = ["NEW_TOKEN", "WEB_INPUTS", "WEB_OUTPUTS", "WebConfigError", "WebController"]

@@ -1,0 +1,121 @@
+"""Who may use the web controller: a random token per start (as Jupyter does), a cookie, and origin checks.
+
+A car on a shared Wi-Fi is reachable by everyone on it, and Donkeycar's web controller lets any of them drive.
+Here every request needs the access token made when the server starts:
+
+* the URL printed at start-up carries it (``/drive?token=...``); opening it stores the token in a cookie
+  (``HttpOnly``, ``SameSite=Strict``) and redirects to the same page without it, so the token does not stay in
+  the address bar or the history;
+* scripts send it as ``?token=...`` on any request or as an ``Authorization: Token ...`` (or ``Bearer``) header;
+* anything else gets ``401``.
+
+A browser sends the cookie with every request to the car, including requests another site's page makes it
+send; ``SameSite=Strict`` keeps the cookie off those, and requests that change something (WebSockets, ``POST``)
+are refused when their ``Origin`` names another site. ``token=None`` turns all this off, which is allowed only
+when the server listens on loopback alone (a simulator on the laptop): nobody else can reach it then.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import secrets
+from collections.abc import Awaitable, Callable
+from urllib.parse import urlsplit
+
+from aiohttp import web
+
+from ...errors import AsyncdonkeyError
+
+__all__ = ["TOKEN_PARAM", "Access", "WebConfigError", "is_loopback", "new_token", "origin_allowed"]
+
+TOKEN_PARAM = "token"
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+class WebConfigError(AsyncdonkeyError, ValueError):
+    """The web controller was configured in a way that is unsafe or cannot work (the message says which)."""
+
+
+def new_token() -> str:
+    """A fresh random access token (128 bits, URL-safe)."""
+    return secrets.token_urlsafe(16)
+
+
+def is_loopback(host: str) -> bool:
+    """True when ``host`` is a loopback name or address (``localhost``, ``127.x.x.x``, ``::1``)."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def origin_allowed(request: web.Request) -> bool:
+    """A request's ``Origin`` (if any) must be the car's own address: the page the car served, not another site.
+
+    No ``Origin`` header means the client is not a browser page (a script, a command-line tool), which the token
+    alone governs.
+    """
+    origin = request.headers.get("Origin")
+    if origin is None:
+        return True
+    parts = urlsplit(origin)
+    return bool(parts.netloc) and parts.netloc.lower() == (request.host or "").lower()
+
+
+class Access:
+    """The token check as aiohttp middleware, with the cookie named after the port (two cars on one host).
+
+    Args:
+        token: the access token, or ``None`` for no check (loopback only; the caller enforces that).
+        port: the server's port, part of the cookie's name.
+    """
+
+    def __init__(self, token: str | None, port: int) -> None:
+        self.token = token
+        self.cookie = f"asyncdonkey-token-{port}"
+        self.refused = 0
+
+    def matches(self, candidate: str | None) -> bool:
+        if self.token is None:
+            return True
+        return candidate is not None and hmac.compare_digest(candidate.encode(), self.token.encode())
+
+    def presented(self, request: web.Request) -> str | None:
+        """The token a request carries: query, then header, then cookie."""
+        q = request.query.get(TOKEN_PARAM)
+        if q is not None:
+            return q
+        auth = request.headers.get("Authorization", "")
+        scheme, _, value = auth.partition(" ")
+        if scheme.lower() in ("token", "bearer") and value:
+            return value.strip()
+        return request.cookies.get(self.cookie)
+
+    @web.middleware
+    async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        if self.token is None:
+            return await handler(request)
+        if not self.matches(self.presented(request)):
+            self.refused += 1
+            return web.Response(
+                status=401,
+                text="asyncdonkey: this car needs its access token. Open the URL it printed when it started "
+                "(.../drive?token=...), or send the token as ?token=... or an 'Authorization: Token ...' header.\n",
+                headers={"WWW-Authenticate": 'Token realm="asyncdonkey"'},
+            )
+        if TOKEN_PARAM in request.query and request.method == "GET" and not _is_websocket(request):
+            # a browser opening the printed URL: keep the token in a cookie, drop it from the address bar
+            query = {k: v for k, v in request.query.items() if k != TOKEN_PARAM}
+            target = request.rel_url.with_query(query)
+            resp = web.Response(status=302, headers={"Location": str(target), "Cache-Control": "no-store"})
+            resp.set_cookie(self.cookie, self.token, httponly=True, samesite="Strict", path="/")
+            return resp
+        return await handler(request)
+
+
+def _is_websocket(request: web.Request) -> bool:
+    return request.headers.get("Upgrade", "").lower() == "websocket"

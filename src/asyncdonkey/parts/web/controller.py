@@ -1,0 +1,568 @@
+"""``WebController``: drive, record and hand over to the pilot from a phone or laptop browser.
+
+Donkeycar's ``LocalWebController`` with its part contract and web API (so its pages and scripts keep working),
+rebuilt on the drive loop:
+
+* **No thread.** The aiohttp server lives in the part's ``async update()`` task on the drive loop's event loop;
+  a command is applied the moment its message is read, and ``shutdown()`` closes the server.
+* **Commands know their age.** ``output_origin()`` is the arrival time of the active driver's latest command,
+  so a ``PWMThrottle`` wired with ``throttle@age`` stops the car when the driving page goes quiet, hidden or
+  away, exactly as for every other controller (``docs/web.md``, "Deadman").
+* **One driver at a time**, others watch (:mod:`.desk`); anyone can stop.
+* **Video at one encode per new frame**, shared by all viewers (:mod:`.video`).
+* **A token per start** (:mod:`.auth`), printed as a URL and a QR code.
+
+Part contract (Donkeycar's)::
+
+    inputs  cam/image_array, tub/num_records, user/mode, recording
+    outputs user/angle, user/throttle, user/mode, recording, web/buttons
+
+HTTP API (Donkeycar's, port 8887): ``/`` → ``/drive``; ``GET /drive`` the page; ``POST /drive`` and WebSocket
+``/wsDrive`` take ``{"angle", "throttle", "drive_mode", "recording", "buttons"}``; the WebSocket pushes
+``driveMode``, ``recording`` and ``num_records``; ``/video`` the MJPEG stream; ``/calibrate`` and
+``/wsCalibrate`` the PWM calibration. Ours on top: ``{"stop": true}``, ``{"release": true}``, pushes of
+``control`` (``you``/``other``/``free``), ``health`` and ``error``; ``GET /status`` (JSON).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import socket
+import ssl
+import sys
+import threading
+from collections.abc import Callable
+from importlib import resources
+from typing import Any, Final, TextIO
+
+from aiohttp import WSMsgType, web
+
+from ...clock import Clock, get_clock
+from ...ratelimit import LogThrottle
+from ..control import USER, normalise_mode
+from .auth import TOKEN_PARAM, Access, WebConfigError, is_loopback, new_token, origin_allowed
+from .calibrate import CalibrationError, apply_calibration, current_calibration
+from .desk import Command, CommandError, Desk, parse_command
+from .health import vehicle_health
+from .video import FrameHub
+
+__all__ = ["NEW_TOKEN", "WEB_INPUTS", "WEB_OUTPUTS", "WebController"]
+
+logger = logging.getLogger(__name__)
+
+WEB_INPUTS: Final = ("cam/image_array", "tub/num_records", "user/mode", "recording")
+WEB_OUTPUTS: Final = ("user/angle", "user/throttle", "user/mode", "recording", "web/buttons")
+
+
+class _NewToken:
+    def __repr__(self) -> str:
+        return "NEW_TOKEN"
+
+
+#: The default ``token``: a fresh random token each time the server starts.
+NEW_TOKEN: Final = _NewToken()
+
+_STATIC_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml"}
+_CSP = (
+    "default-src 'self'; img-src 'self' data:; connect-src 'self' ws: wss:; style-src 'self'; script-src 'self'; "
+    "frame-ancestors 'none'"
+)
+
+
+def _load_static() -> dict[str, tuple[bytes, str]]:
+    """The page's files, read once from the package (a car has no internet: nothing comes from a CDN)."""
+    out: dict[str, tuple[bytes, str]] = {}
+    for entry in resources.files(__package__).joinpath("static").iterdir():
+        suffix = "." + entry.name.rsplit(".", 1)[-1]
+        if entry.is_file() and suffix in _STATIC_TYPES:
+            out[entry.name] = (entry.read_bytes(), _STATIC_TYPES[suffix])
+    return out
+
+
+class WebController:
+    """A browser as the car's controller (see the module docstring and ``docs/web.md``).
+
+    Args:
+        port: TCP port (Donkeycar's ``WEB_CONTROL_PORT``, 8887); 0 picks a free one (see :attr:`port`).
+        mode: the drive mode at start (Donkeycar's ``WEB_INIT_MODE``).
+        host: address to listen on; the default, every interface, is what a phone on the car's Wi-Fi needs.
+        token: the access token; by default a new random one per start. ``None`` disables the check and is
+            refused unless ``host`` is a loopback address.
+        vehicle: the Vehicle, for the page's health strip (its profiler); or give ``status``.
+        status: a callable returning a JSON-able dict shown as the health strip (overrides ``vehicle``).
+        steering, throttle: the ``PWMSteering`` / ``PWMThrottle`` parts ``/calibrate`` adjusts.
+        max_throttle: the page's throttle is multiplied by this (like ``JOYSTICK_MAX_THROTTLE``).
+        idle_release_s: a driver silent this long loses control to the next client that drives.
+        jpeg_quality: quality of the video's JPEGs.
+        announce: where the drive URL (and QR code) is printed at start; ``None``: only logged.
+        qr: print a QR code of the URL (default: when ``announce`` is a terminal).
+        ssl_context: serve HTTPS (phones grant the screen wake lock and motion sensors only to secure pages).
+        health_every_s: how often the health strip is pushed to the pages.
+    """
+
+    def __init__(
+        self,
+        port: int = 8887,
+        mode: str = USER,
+        *,
+        host: str = "0.0.0.0",
+        token: str | _NewToken | None = NEW_TOKEN,
+        vehicle: Any = None,
+        status: Callable[[], dict[str, Any]] | None = None,
+        steering: Any = None,
+        throttle: Any = None,
+        max_throttle: float = 1.0,
+        idle_release_s: float = 1.0,
+        jpeg_quality: int = 80,
+        announce: TextIO | None = sys.stderr,
+        qr: bool | None = None,
+        ssl_context: ssl.SSLContext | None = None,
+        health_every_s: float = 0.5,
+    ) -> None:
+        if not (isinstance(port, int) and 0 <= port <= 65535):
+            raise WebConfigError(f"WebController: port must be 0..65535, got {port!r}")
+        if token is None and not is_loopback(host):
+            raise WebConfigError(
+                f"WebController: token=None lets anyone who can reach {host}:{port} drive the car; it is allowed "
+                "only with a loopback host (host='127.0.0.1'). Keep the default token, or set one."
+            )
+        if isinstance(token, str) and len(token) < 8:
+            raise WebConfigError("WebController: a token must have at least 8 characters")
+        if not (isinstance(max_throttle, int | float) and 0.0 <= max_throttle <= 1.0):
+            raise WebConfigError(f"WebController: max_throttle must be in [0, 1], got {max_throttle!r}")
+        if not (health_every_s > 0 and math.isfinite(health_every_s)):
+            raise WebConfigError(f"WebController: health_every_s must be a positive number, got {health_every_s!r}")
+        self.host = host
+        self.port = port
+        self._token_setting = token
+        self.token: str | None = None  # the token in force (set when the server starts)
+        self.url: str | None = None  # the drive URL with the token, once listening
+        self.vehicle = vehicle
+        self._status = status if status is not None else (lambda: vehicle_health(vehicle)) if vehicle else None
+        self.steering = steering
+        self.throttle_part = throttle
+        self.max_throttle = float(max_throttle)
+        self.announce = announce
+        self.qr = qr
+        self.ssl_context = ssl_context
+        self.health_every_s = float(health_every_s)
+        self.outputs: list[str] = list(WEB_OUTPUTS)
+        self.inputs: list[str] = list(WEB_INPUTS)
+
+        self.angle = 0.0
+        self.throttle = 0.0
+        self.mode = normalise_mode(mode, "WebController mode")
+        self.recording = False
+        self.num_records = 0
+        self._mode_latch: str | None = None
+        self._recording_latch: bool | None = None
+        self._buttons: dict[str, bool] = {}
+
+        self.desk = Desk(idle_release_s)
+        self.hub = FrameHub(jpeg_quality)
+        self.commands = 0  # drive commands applied
+        self.bad_commands = 0
+        self.ticks = 0
+        self.last_health: dict[str, Any] | None = None
+        #: set (from the loop) once the server listens; threads may wait on it
+        self.listening = threading.Event()
+        self._origin: float | None = None
+        self._clients: dict[web.WebSocketResponse, str] = {}  # socket -> role last told
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._clock: Clock | None = None
+        self._stop: asyncio.Event | None = None
+        self._served: asyncio.Future[None] | None = None
+        self._access: Access | None = None
+        self._static = _load_static()
+        self._log = LogThrottle(5.0)
+
+    # ================================================================================== part contract
+    def run(
+        self, img_arr: Any = None, num_records: Any = 0, mode: Any = None, recording: Any = None
+    ) -> tuple[float, float, str, bool, dict[str, bool]]:
+        """One tick: take the image and the car's state, return ``angle, throttle, mode, recording, buttons``."""
+        self.hub.offer(img_arr)
+        self.ticks += 1
+        if self.desk.driver is not None and self.desk.expire(self._now()):
+            self._on_release("went quiet")
+        changes: dict[str, Any] = {}
+        if mode is not None:
+            m = normalise_mode(mode, "WebController input 'user/mode'")
+            if m != self.mode:
+                self.mode = m
+                changes["driveMode"] = m
+        if self._mode_latch is not None:
+            self.mode, self._mode_latch = self._mode_latch, None
+            changes["driveMode"] = self.mode
+        if recording is not None and bool(recording) != self.recording:
+            self.recording = bool(recording)
+            changes["recording"] = self.recording
+        if self._recording_latch is not None:
+            self.recording, self._recording_latch = self._recording_latch, None
+            changes["recording"] = self.recording
+        if num_records is not None and num_records != self.num_records:
+            self.num_records = int(num_records)
+            if self.recording and self.num_records % 10 == 0:
+                changes["num_records"] = self.num_records
+        # Donkeycar's button latch: a press is reported on one tick, then as released on the next
+        buttons = self._buttons
+        self._buttons = {name: False for name, pressed in buttons.items() if pressed}
+        if changes:
+            self._broadcast(changes)
+        return self.angle, self.throttle, self.mode, self.recording, buttons
+
+    run_threaded = run
+
+    def output_origin(self) -> float | None:
+        """Arrival time of the driver's latest command (server start before any): what ``@age`` measures."""
+        return self._origin
+
+    async def update(self) -> None:
+        """Serve until :meth:`shutdown` (a background task beside the ticks)."""
+        loop = self._loop = asyncio.get_running_loop()
+        clock = self._clock = get_clock(loop)
+        self._stop = asyncio.Event()
+        self._served = loop.create_future()
+        self.token = new_token() if isinstance(self._token_setting, _NewToken) else self._token_setting
+        runner = web.AppRunner(self._make_app(), access_log=None, shutdown_timeout=1.0)
+        try:
+            await runner.setup()
+            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
+            await site.start()
+            bound = runner.addresses[0]
+            self.port = int(bound[1])
+            assert self._access is not None
+            self._access.cookie = f"asyncdonkey-token-{self.port}"
+            self._origin = clock.now()
+            self.url = self._urls()[0]
+            self._announce()
+            self.listening.set()
+            tasks = [
+                asyncio.create_task(self.hub.run(), name="web video encoder"),
+                asyncio.create_task(self._health_loop(), name="web health"),
+            ]
+            try:
+                await self._stop.wait()
+            finally:
+                for t in tasks:
+                    t.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+        finally:
+            await self._close(runner)
+            self.listening.clear()
+            if not self._served.done():
+                self._served.set_result(None)
+
+    async def shutdown(self, timeout: float = 2.0) -> None:
+        """Close every connection and stop listening (waits up to ``timeout`` seconds)."""
+        if self._stop is None or self._served is None:
+            return
+        self._stop.set()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(asyncio.shield(self._served), timeout)
+
+    async def _close(self, runner: web.AppRunner) -> None:
+        await self.hub.close()
+        for ws in list(self._clients):
+            with contextlib.suppress(Exception):
+                await ws.close(code=1001, message=b"the car is shutting down")
+        for t in list(self._tasks):
+            t.cancel()
+        await runner.cleanup()
+
+    # ================================================================================== commands
+    def _now(self) -> float:
+        clock = self._clock
+        if clock is None:
+            clock = self._clock = get_clock()
+        return clock.now()
+
+    def apply(self, client: object, cmd: Command) -> str:
+        """Apply one command from ``client``; returns its role afterwards (``you``, ``other`` or ``free``)."""
+        now = self._now()
+        before = self.desk.driver
+        if cmd.stop:
+            self.desk.claim(client, now, force=True)
+            self.throttle = 0.0
+            self._mode_latch = USER  # the pilot loses the car too
+            self._origin = now
+            logger.warning("web: stop from %s", _name(client))
+        if cmd.release and self.desk.release(client):
+            self._on_release("released")
+        if cmd.drives:
+            if not self.desk.claim(client, now):
+                return "other"
+            if cmd.angle is not None:
+                self.angle = cmd.angle
+            if cmd.throttle is not None:
+                self.throttle = 0.0 if cmd.stop else cmd.throttle * self.max_throttle
+            if cmd.mode is not None and not cmd.stop:
+                self.mode = self._mode_latch = cmd.mode
+            if cmd.recording is not None:
+                self.recording = self._recording_latch = cmd.recording
+            if cmd.buttons:
+                for name, pressed in cmd.buttons.items():
+                    if pressed:
+                        self._buttons[name] = True
+            self._origin = now
+            self.commands += 1
+        if self.desk.driver is not before:
+            self._push_roles()
+        return self.desk.role(client, now)
+
+    def _on_release(self, why: str) -> None:
+        """The driver let go: neutral command, but with the *old* arrival time, so the failsafe sees its age."""
+        self.throttle = 0.0
+        self.angle = 0.0
+        logger.info("web: the driver %s; control is free", why)
+        self._push_roles()
+
+    # ================================================================================== server
+    def _make_app(self) -> web.Application:
+        self._access = Access(self.token, self.port)
+        app = web.Application(middlewares=[self._access.middleware, _security_headers])
+        app.router.add_get("/", self._root)
+        app.router.add_get("/drive", self._page("drive.html"))
+        app.router.add_post("/drive", self._post_drive)
+        app.router.add_get("/wsDrive", self._ws_drive)
+        app.router.add_get("/calibrate", self._page("calibrate.html"))
+        app.router.add_get("/wsCalibrate", self._ws_calibrate)
+        app.router.add_get("/video", self.hub.stream)
+        app.router.add_get("/status", self._get_status)
+        app.router.add_get("/static/{name}", self._get_static)
+        return app
+
+    async def _root(self, request: web.Request) -> web.StreamResponse:
+        raise web.HTTPFound("/drive")
+
+    def _page(self, name: str) -> Callable[[web.Request], Any]:
+        async def handler(request: web.Request) -> web.StreamResponse:
+            body, ctype = self._static[name]
+            return web.Response(body=body, content_type=ctype, headers={"Cache-Control": "no-cache"})
+
+        return handler
+
+    async def _get_static(self, request: web.Request) -> web.StreamResponse:
+        found = self._static.get(request.match_info["name"])
+        if found is None:
+            raise web.HTTPNotFound()
+        body, ctype = found
+        return web.Response(body=body, content_type=ctype, headers={"Cache-Control": "no-cache"})
+
+    def state(self, client: object = None) -> dict[str, Any]:
+        """What ``/status`` returns: the controller's state, the video counters and the health figures."""
+        now = self._now()
+        return {
+            "angle": self.angle,
+            "throttle": self.throttle,
+            "driveMode": self.mode,
+            "recording": self.recording,
+            "num_records": self.num_records,
+            "control": self.desk.role(client, now),
+            "command_age_s": (now - self._origin) if self._origin is not None else None,
+            "commands": self.commands,
+            "refused": self.desk.refused,
+            "viewers": self.hub.viewers,
+            "encodes": self.hub.encodes,
+            "health": self.last_health,
+        }
+
+    async def _get_status(self, request: web.Request) -> web.StreamResponse:
+        return web.json_response(self.state(f"http:{request.remote}"))
+
+    async def _post_drive(self, request: web.Request) -> web.StreamResponse:
+        _check_origin(request)
+        try:
+            cmd = parse_command(await request.json())
+        except (ValueError, CommandError) as exc:  # json.JSONDecodeError is a ValueError
+            self.bad_commands += 1
+            return web.json_response({"error": str(exc)}, status=400)
+        role = self.apply(f"http:{request.remote}", cmd)
+        if role == "other" and cmd.drives:
+            return web.json_response({"control": role, "error": "another client is driving"}, status=409)
+        return web.json_response({"control": role})
+
+    async def _ws_drive(self, request: web.Request) -> web.StreamResponse:
+        _check_origin(request)
+        ws = web.WebSocketResponse(heartbeat=2.0)
+        await ws.prepare(request)
+        role = self.desk.role(ws, self._now())
+        self._clients[ws] = role
+        hello: dict[str, Any] = {
+            "driveMode": self.mode,
+            "recording": self.recording,
+            "num_records": self.num_records,
+            "control": role,
+        }
+        if self.last_health is not None:
+            hello["health"] = self.last_health
+        await ws.send_json(hello)
+        try:
+            async for msg in ws:
+                if msg.type is WSMsgType.TEXT:
+                    self._on_message(ws, msg.data)
+        finally:
+            self._clients.pop(ws, None)
+            if self.desk.release(ws):
+                self._on_release("closed the page")
+        return ws
+
+    def _on_message(self, ws: web.WebSocketResponse, text: str) -> None:
+        try:
+            cmd = parse_command(json.loads(text))
+        except (ValueError, CommandError) as exc:
+            self.bad_commands += 1
+            self._send(ws, {"error": str(exc)})
+            return
+        role = self.apply(ws, cmd)
+        if self._clients.get(ws) != role:
+            self._clients[ws] = role
+            self._send(ws, {"control": role})
+
+    async def _ws_calibrate(self, request: web.Request) -> web.StreamResponse:
+        _check_origin(request)
+        ws = web.WebSocketResponse(heartbeat=2.0)
+        await ws.prepare(request)
+        await ws.send_json({"config": current_calibration(self.steering, self.throttle_part)})
+        try:
+            async for msg in ws:
+                if msg.type is not WSMsgType.TEXT:
+                    continue
+                try:
+                    data = json.loads(msg.data)
+                    if not isinstance(data, dict):
+                        raise CommandError("calibration: expected a JSON object")
+                    if "config" in data:
+                        applied = apply_calibration(self.steering, self.throttle_part, data["config"])
+                        logger.info("web: calibration set to %s", applied)
+                        await ws.send_json({"config": applied})
+                    drive = {k: data[k] for k in ("angle", "throttle") if k in data}
+                    if drive:
+                        role = self.apply(ws, parse_command(drive))
+                        await ws.send_json({"control": role})
+                except (ValueError, CalibrationError, CommandError) as exc:
+                    await ws.send_json({"error": str(exc)})
+        finally:
+            if self.desk.release(ws):
+                self._on_release("closed the calibration page")
+        return ws
+
+    # ================================================================================== pushes
+    def _send(self, ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:
+        task = asyncio.get_running_loop().create_task(_send_json(ws, payload))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _broadcast(self, payload: dict[str, Any]) -> None:
+        """Push to every page; safe from the tick (any thread), a no-op before the server runs."""
+        loop = self._loop
+        if loop is None or loop.is_closed() or not self._clients:
+            return
+        loop.call_soon_threadsafe(self._broadcast_now, payload)
+
+    def _broadcast_now(self, payload: dict[str, Any]) -> None:
+        for ws in list(self._clients):
+            self._send(ws, payload)
+
+    def _push_roles(self) -> None:
+        now = self._now()
+        for ws, told in list(self._clients.items()):
+            role = self.desk.role(ws, now)
+            if role != told:
+                self._clients[ws] = role
+                self._send(ws, {"control": role})
+
+    async def _health_loop(self) -> None:
+        clock = self._clock
+        assert clock is not None
+        last_t, last_n = clock.now(), self.ticks
+        while True:
+            await clock.sleep(self.health_every_s)
+            now, n = clock.now(), self.ticks
+            health: dict[str, Any] = {"hz": round((n - last_n) / (now - last_t), 2) if now > last_t else 0.0}
+            last_t, last_n = now, n
+            if self._status is not None:
+                try:
+                    health.update(self._status())
+                except Exception as exc:  # a status callable must not take the controller down
+                    if self._log.allow("status", now):
+                        logger.error("web: the status callable failed: %r", exc)
+            health["viewers"] = self.hub.viewers
+            self.last_health = health
+            self._push_roles()
+            if self._clients:
+                self._broadcast_now({"health": health})
+
+    # ================================================================================== start-up message
+    def _urls(self) -> list[str]:
+        scheme = "https" if self.ssl_context is not None else "http"
+        query = f"?{TOKEN_PARAM}={self.token}" if self.token else ""
+        if self.host in ("", "0.0.0.0", "::"):
+            hosts = [*_lan_addresses(), f"{socket.gethostname()}.local"]
+        else:
+            hosts = [f"[{self.host}]" if ":" in self.host else self.host]
+        return [f"{scheme}://{h}:{self.port}/drive{query}" for h in hosts]
+
+    def _announce(self) -> None:
+        urls = self._urls()
+        logger.info("web controller listening on %s:%d", self.host, self.port)
+        out = self.announce
+        if out is None:
+            return
+        lines = ["Drive from a browser (phone on the car's network):", *(f"  {u}" for u in urls)]
+        if self.token:
+            lines.append(
+                "Anyone with this link can drive"
+                + ("; the token changes at every start." if isinstance(self._token_setting, _NewToken) else ".")
+            )
+        out.write("\n".join(lines) + "\n")
+        show_qr = self.qr if self.qr is not None else bool(getattr(out, "isatty", lambda: False)())
+        if show_qr:
+            import segno
+
+            segno.make(urls[0], error="L").terminal(out=out, compact=True)
+        out.flush()
+
+
+def _lan_addresses() -> list[str]:
+    """This host's non-loopback IPv4 addresses, as a phone on the same network would reach it."""
+    try:
+        infos = socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)
+    except OSError:
+        return []
+    seen: list[str] = []
+    for info in infos:
+        addr = str(info[4][0])
+        if not is_loopback(addr) and addr not in seen:
+            seen.append(addr)
+    return seen
+
+
+def _check_origin(request: web.Request) -> None:
+    if not origin_allowed(request):
+        raise web.HTTPForbidden(text=f"asyncdonkey: requests from {request.headers.get('Origin')} are not accepted\n")
+
+
+def _name(client: object) -> str:
+    return client if isinstance(client, str) else f"a page ({id(client):x})"
+
+
+async def _send_json(ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:
+    if ws.closed:
+        return
+    with contextlib.suppress(ConnectionError, RuntimeError):
+        await ws.send_json(payload)
+
+
+@web.middleware
+async def _security_headers(request: web.Request, handler: Callable[[web.Request], Any]) -> web.StreamResponse:
+    resp = await handler(request)
+    if resp.content_type == "text/html":
+        resp.headers.setdefault("Content-Security-Policy", _CSP)
+        resp.headers.setdefault("X-Content-Type-Options", "nosniff")
+    return resp

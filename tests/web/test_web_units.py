@@ -1,0 +1,221 @@
+"""The web controller's pieces without a server: command parsing, the one-driver desk, calibration, the
+button latch and the video hub (on the virtual clock)."""
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle
+from asyncdonkey.parts.web import WebConfigError, WebController
+from asyncdonkey.parts.web.calibrate import CalibrationError, apply_calibration, current_calibration
+from asyncdonkey.parts.web.desk import Command, CommandError, Desk, parse_command
+from asyncdonkey.parts.web.video import FrameHub, encode_jpeg
+from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+
+def test_commands_are_donkeycar_messages_clamped_and_checked():
+    c = parse_command({"angle": -3, "throttle": "0.25", "drive_mode": "local_pilot", "recording": True})
+    assert (c.angle, c.throttle, c.mode, c.recording) == (-1.0, 0.25, "local", True)
+    assert c.drives and not c.stop
+    assert not parse_command({"stop": True}).drives
+    assert parse_command({"angle": None, "throttle": None}).drives is False
+    for bad, word in (
+        ({"throttle": "fast"}, "throttle"),
+        ({"angle": float("nan")}, "angle"),
+        ({"angle": True}, "angle"),
+        ({"drive_mode": "autopilot"}, "autopilot"),
+        ({"recording": "yes"}, "recording"),
+        ({"buttons": ["w1"]}, "buttons"),
+        ([1, 2], "JSON object"),
+    ):
+        with pytest.raises(CommandError, match=word):
+            parse_command(bad)
+
+
+def test_one_driver_at_a_time_with_idle_release_and_stop_for_everyone():
+    desk = Desk(idle_release_s=1.0)
+    assert desk.role("a", 0.0) == "free"
+    assert desk.claim("a", 0.0)
+    assert desk.role("a", 0.1) == "you" and desk.role("b", 0.1) == "other"
+    assert not desk.claim("b", 0.5)  # a still drives
+    assert desk.claim("a", 0.9)  # a's steady commands keep it in control
+    assert not desk.claim("b", 1.8)
+    assert desk.refused == 2
+    assert desk.claim("b", 1.9, force=True)  # stop: anyone, any time
+    assert desk.role("a", 1.9) == "other"
+    assert desk.release("b") and desk.role("a", 2.0) == "free"
+    assert desk.claim("a", 2.0)
+    assert desk.role("b", 3.0) == "free"  # a went quiet for idle_release_s
+    assert desk.claim("b", 3.0)
+    assert not desk.release("a")  # not a's to release
+    assert desk.expire(4.5) and desk.driver is None
+    with pytest.raises(WebConfigError):
+        Desk(idle_release_s=0)
+
+
+@pytest.fixture
+def pwm():
+    sim = I2CSimulator()
+    sim.attach(PCA9685Model(), address=0x40, bus=1)
+    buses = sim.registry(retry_delay_s=0)
+    yield PWMSteering("PCA9685.1:40.1", buses=buses), PWMThrottle("PCA9685.1:40.0", buses=buses)
+    buses.close_all()
+
+
+def test_calibration_sets_pulses_and_neutrals_or_nothing(pwm):
+    steering, throttle = pwm
+    assert current_calibration(steering, throttle) == {
+        "STEERING_LEFT_PWM": 460,
+        "STEERING_RIGHT_PWM": 290,
+        "THROTTLE_FORWARD_PWM": 500,
+        "THROTTLE_STOPPED_PWM": 370,
+        "THROTTLE_REVERSE_PWM": 220,
+    }
+    got = apply_calibration(steering, throttle, {"STEERING_LEFT_PWM": 480, "THROTTLE_STOPPED_PWM": 380})
+    assert got["STEERING_LEFT_PWM"] == 480 and steering.left_pulse == 480
+    assert steering.neutral_pulse == 385  # centre of 480 and 290, where shutdown leaves the wheels
+    assert throttle.zero_pulse == 380 and throttle.neutral_pulse == 380  # the failsafe's stopped pulse
+    for bad, word in (
+        ({"STEERING_LEFT_PWM": 250}, "both 250"),
+        ({"THROTTLE_FORWARD_PWM": 380}, "must differ"),
+        ({"STEERING_RIGHT_PWM": 5000}, "0..4095"),
+        ({"STEERING_RIGHT_PWM": 300.5}, "whole number"),
+        ({"MM1_STEERING_MID": 1500}, "unknown setting"),
+        ("460", "object"),
+    ):
+        with pytest.raises(CalibrationError, match=word):
+            apply_calibration(steering, throttle, {"STEERING_RIGHT_PWM": 250, **bad} if isinstance(bad, dict) else bad)
+        assert steering.right_pulse == 290  # checked first, then applied: a refused request changes nothing
+    with pytest.raises(CalibrationError, match="steering part"):
+        apply_calibration(None, throttle, {"STEERING_LEFT_PWM": 470})
+
+
+def test_token_none_is_refused_unless_loopback():
+    with pytest.raises(WebConfigError, match="loopback"):
+        WebController(token=None)
+    with pytest.raises(WebConfigError, match="loopback"):
+        WebController(token=None, host="192.168.1.20")
+    WebController(token=None, host="127.0.0.1")
+    WebController(token=None, host="::1")
+    with pytest.raises(WebConfigError, match="8 characters"):
+        WebController(token="abc")
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_button_presses_are_latched_for_one_tick_as_donkeycar_does():
+    ctr = WebController(host="127.0.0.1", announce=None)
+    assert ctr.apply("script", Command(buttons={"w1": True, "w2": False})) == "you"
+    assert ctr.run()[4] == {"w1": True}
+    assert ctr.run()[4] == {"w1": False}
+    assert ctr.run()[4] == {}
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_mode_and_recording_latch_over_the_inputs_then_follow_them():
+    ctr = WebController(host="127.0.0.1", announce=None)
+    assert ctr.run(None, 0, "user", False)[2:4] == ("user", False)
+    ctr.apply("page", Command(mode="local", recording=True))
+    # the page's choice wins over the (older) values the tick reads back from memory
+    assert ctr.run(None, 0, "user", False)[2:4] == ("local", True)
+    # after that the inputs rule again, as with Donkeycar (another part may switch modes)
+    assert ctr.run(None, 0, "local_angle", False)[2:4] == ("local_angle", False)
+    with pytest.raises(ValueError, match="autopilot"):
+        ctr.run(None, 0, "autopilot", False)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_stop_takes_control_zeroes_throttle_and_hands_back_from_the_pilot():
+    ctr = WebController(host="127.0.0.1", announce=None, max_throttle=0.5)
+    ctr.apply("driver", Command(throttle=0.8, mode="local"))
+    assert ctr.run()[1:3] == (0.4, "local")  # max_throttle scales the page's throttle
+    assert ctr.apply("watcher", Command(throttle=1.0)) == "other"
+    assert ctr.throttle == 0.4
+    assert ctr.apply("watcher", Command(stop=True)) == "you"
+    assert ctr.run()[1:3] == (0.0, "user")
+    assert ctr.apply("driver", Command(throttle=0.5)) == "other"
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_outputs_take_their_origin_from_the_commands_arrival():
+    from asyncdonkey import get_clock
+
+    clock = get_clock()
+    ctr = WebController(host="127.0.0.1", announce=None)
+    assert ctr.output_origin() is None
+    await asyncio.sleep(1.0)
+    ctr.apply("page", Command(angle=0.1, throttle=0.2))
+    t = clock.now()
+    await asyncio.sleep(0.3)
+    ctr.run()
+    assert ctr.output_origin() == t  # 0.3 s old: the tick does not make the command fresh
+    ctr.apply("page", Command(angle=0.1, throttle=0.2))  # the page's steady resend
+    assert ctr.output_origin() == clock.now()
+    ctr.apply("page", Command(release=True))
+    assert (ctr.throttle, ctr.output_origin()) == (0.0, clock.now())  # neutral, with the old arrival time
+    await asyncio.sleep(0.5)
+    assert clock.now() - ctr.output_origin() == pytest.approx(0.5)
+
+
+def _frame(v: int) -> np.ndarray:
+    return np.full((120, 160, 3), v, np.uint8)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_video_hub_encodes_each_new_frame_once_for_all_viewers_and_nothing_unwatched():
+    hub = FrameHub()
+    runner = asyncio.create_task(hub.run())
+    await asyncio.sleep(0)
+    for v in range(5):
+        hub.offer(_frame(v))
+        await asyncio.sleep(0.05)
+    assert (hub.offered, hub.encodes) == (5, 0)  # nobody watches: nothing is encoded
+
+    got: dict[str, list[int]] = {"a": [], "b": [], "c": [], "slow": []}
+
+    async def viewer(name: str, pause: float) -> None:
+        seq = 0
+        while True:
+            nxt = await hub.next_after(seq)
+            if nxt is None:
+                return
+            seq = nxt[0]
+            got[name].append(seq)
+            await asyncio.sleep(pause)
+
+    hub.viewers = 4  # what four open /video streams count
+    hub.offer(_frame(99))
+    viewers = [asyncio.create_task(viewer(n, 0.26 if n == "slow" else 0)) for n in got]
+    await asyncio.sleep(0.01)
+    for v in range(20):
+        frame = _frame(v)
+        for _ in range(3):  # the tick sees the same frame object three times (a camera slower than the loop)
+            hub.offer(frame)
+            await asyncio.sleep(0.0167)
+    await asyncio.sleep(0.1)
+    await hub.close()
+    await asyncio.gather(*viewers)
+    runner.cancel()
+    assert hub.offered == 5 + 1 + 20
+    assert hub.encodes == 21  # each new frame once, however many viewers
+    assert got["a"] == got["b"] == got["c"] == list(range(1, 22))
+    slow = got["slow"]
+    assert len(slow) < 10 and slow[-1] == 21  # the slow viewer skipped to the newest instead of queueing
+
+
+def test_jpeg_encoding_keeps_colours_and_names_bad_frames():
+    import cv2
+
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[..., 0] = 250  # red in RGB
+    back = cv2.imdecode(np.frombuffer(encode_jpeg(img, 90), np.uint8), cv2.IMREAD_COLOR)
+    assert back.shape == (120, 160, 3) and back[60, 80, 2] > 200 and back[60, 80, 0] < 40  # BGR: red is last
+    with pytest.raises(TypeError, match="uint8"):
+        encode_jpeg(img.astype(np.float32), 90)
+    with pytest.raises(ValueError, match="shape"):
+        encode_jpeg(np.zeros((4, 4, 2), np.uint8), 90)

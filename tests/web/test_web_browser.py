@@ -1,0 +1,184 @@
+"""The drive page in a real browser (headless Chromium) against a car driving in real time in its own thread.
+
+A person's view: the page loads clean, touch and keys drive the PWM outputs, the video moves, mode and
+recording round-trip, STOP and a closed tab bring the throttle to neutral, and no token means no entry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from web_rig import ZERO_PULSE, CarThread, WebCar, wait_until
+
+
+@pytest.fixture(scope="module")
+def car(tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebCar]:
+    with CarThread(WebCar(tmp_path_factory.mktemp("webcar"))) as c:
+        yield c
+
+
+class Page:
+    """A browser tab opened on the URL the car printed, collecting console errors and page errors."""
+
+    def __init__(self, browser: Any, car: WebCar, **context: Any) -> None:
+        self.context = browser.new_context(**context)
+        self.page = self.context.new_page()
+        self.errors: list[str] = []
+        self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        self.response = self.page.goto(car.ctr.url)
+        self.page.wait_for_selector("#conn[data-state=connected]", timeout=10_000)
+
+    def text(self, selector: str) -> str:
+        return self.page.locator(selector).inner_text()
+
+    def close(self) -> None:
+        self.context.close()
+
+
+@pytest.fixture
+def tab(browser: Any, car: WebCar) -> Iterator[Page]:
+    p = Page(browser, car)
+    yield p
+    p.close()
+    wait_until(lambda: car.ctr.desk.driver is None, 5, "control to be free after the tab closed")
+
+
+def test_page_loads_clean_with_health_and_wake_lock(tab: Page, car: WebCar):
+    assert tab.response is not None and tab.response.url.endswith("/drive")  # the token left the address bar
+    page = tab.page
+    page.wait_for_function("document.getElementById('health').textContent.includes('Hz')", timeout=5_000)
+    footer = tab.text("#health")
+    assert "late p99" in footer and "watching" in footer
+    assert page.locator("#wake").get_attribute("data-state") in ("on", "refused")  # asked for the wake lock
+    assert page.locator("#modes [aria-pressed=true]").get_attribute("data-mode") == "user"
+    assert tab.errors == []
+
+
+def test_keyboard_drives_and_releases(tab: Page, car: WebCar):
+    kb = tab.page.keyboard
+    kb.down("ArrowUp")
+    kb.down("ArrowRight")
+    wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse from the up arrow")
+    wait_until(lambda: car.mem["user/angle"] == 1.0, what="full right lock from the right arrow")
+    assert car.mem["user/throttle"] == pytest.approx(0.5)  # the page's max throttle slider (0.5)
+    assert tab.text("#control") == "you drive"
+    kb.up("ArrowRight")
+    kb.up("ArrowUp")
+    wait_until(lambda: car.mem["user/throttle"] == 0 and car.mem["user/angle"] == 0, what="keys released")
+    assert car.throttle_pulse() == ZERO_PULSE
+    kb.down("KeyW")
+    wait_until(lambda: car.mem["user/throttle"] > 0, what="W drives too")
+    kb.press("Space")  # stop
+    wait_until(lambda: car.mem["user/throttle"] == 0, what="space stops")
+    assert tab.text("#source") == "stopped"
+    kb.up("KeyW")
+    assert tab.errors == []
+
+
+def test_touch_joystick_drives(browser: Any, car: WebCar):
+    phone = Page(browser, car, has_touch=True, is_mobile=True, viewport={"width": 390, "height": 800})
+    try:
+        page = phone.page
+        box = page.locator("#pad").bounding_box()
+        cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        cdp = phone.context.new_cdp_session(page)
+
+        def touch(kind: str, x: float, y: float) -> None:
+            points = [] if kind == "touchEnd" else [{"x": x, "y": y, "id": 1}]
+            cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+
+        touch("touchStart", cx, cy)
+        for i in range(1, 6):  # a finger dragging up and to the right
+            touch("touchMove", cx + 0.07 * i * box["width"], cy - 0.07 * i * box["height"])
+        wait_until(lambda: car.mem["user/angle"] > 0.5 and car.mem["user/throttle"] > 0.2, what="touch driving")
+        wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse from the touch pad")
+        assert car.steering_pulse() < 360  # steered right
+        touch("touchEnd", 0, 0)
+        wait_until(lambda: car.mem["user/throttle"] == 0 and car.mem["user/angle"] == 0, what="finger lifted")
+        assert phone.errors == []
+    finally:
+        phone.close()
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.int16)
+
+
+def test_video_shows_frames_that_change(tab: Page, car: WebCar):
+    video = tab.page.locator("#video")
+    tab.page.wait_for_function("document.getElementById('video').naturalWidth === 160", timeout=5_000)
+    first = _pixels(video.screenshot())
+    wait_until(lambda: np.abs(_pixels(video.screenshot()) - first).mean() > 5, 5, "the picture to change")
+    # the camera's yellow bar (RGB 240, 200, 40) is on screen: the car's frames, not a placeholder
+    b, g, r = first[..., 0], first[..., 1], first[..., 2]
+    assert ((r > 180) & (g > 140) & (b < 110)).mean() > 0.02
+    assert car.ctr.hub.encodes <= car.camera.frames  # never more encodes than camera frames
+
+
+def test_mode_and_record_toggles_round_trip(tab: Page, car: WebCar):
+    page = tab.page
+    page.click("#modes [data-mode=local_angle]")
+    wait_until(lambda: car.mem["user/mode"] == "local_angle", what="mode local_angle in memory")
+    page.wait_for_selector("#modes [data-mode=local_angle][aria-pressed=true]", timeout=5_000)
+    page.click("#modes [data-mode=user]")
+    wait_until(lambda: car.mem["user/mode"] == "user", what="mode user in memory")
+    page.click("#record")
+    wait_until(lambda: car.mem["recording"] is True, what="recording on")
+    page.wait_for_selector("#record[aria-pressed=true]", timeout=5_000)
+    wait_until(lambda: int(tab.text("#count")) >= 10, 10, "the record count on the page")
+    page.click("#record")
+    wait_until(lambda: car.mem["recording"] is False, what="recording off")
+    page.wait_for_selector("#record[aria-pressed=false]", timeout=5_000)
+    assert car.mem["tub/num_records"] >= 10
+    assert tab.errors == []
+
+
+def test_stop_button_from_a_watching_tab_stops_the_driver(browser: Any, tab: Page, car: WebCar):
+    tab.page.keyboard.down("ArrowUp")
+    wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the first tab driving")
+    watcher = Page(browser, car)
+    try:
+        watcher.page.wait_for_selector("#control[data-role=other]", timeout=5_000)
+        watcher.page.keyboard.down("ArrowDown")  # a watcher's stick is ignored
+        watcher.page.wait_for_timeout(300)
+        assert car.mem["user/throttle"] > 0
+        watcher.page.keyboard.up("ArrowDown")
+        watcher.page.click("#stop")
+        wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "STOP to stop the car")
+        assert car.mem["user/throttle"] == 0 and car.mem["user/mode"] == "user"
+        tab.page.wait_for_selector("#control[data-role=other]", timeout=5_000)  # the driver lost control
+        tab.page.wait_for_timeout(300)
+        assert car.throttle_pulse() == ZERO_PULSE  # though its up arrow is still held
+    finally:
+        tab.page.keyboard.up("ArrowUp")
+        watcher.close()
+
+
+def test_a_closed_tab_stops_the_car_through_the_failsafe(browser: Any, car: WebCar):
+    driver = Page(browser, car)
+    driver.page.keyboard.down("ArrowUp")
+    wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the tab driving")
+    events = car.throttle.failsafe_events
+    driver.page.close()  # the tab goes away mid-drive
+    wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "the throttle at neutral")
+    wait_until(lambda: car.throttle.failsafe_events > events, 2, "the stale-command failsafe to take over")
+    assert car.mem.age("throttle") >= 0.25 and car.ctr.desk.driver is None
+    driver.close()
+
+
+def test_without_the_token_the_browser_is_refused(browser: Any, car: WebCar):
+    context = browser.new_context()
+    try:
+        page = context.new_page()
+        resp = page.goto(f"{car.base}/drive")
+        assert resp is not None and resp.status == 401
+        assert "access token" in page.content()
+        status = page.evaluate("fetch('/status').then(r => r.status)")
+        assert status == 401
+    finally:
+        context.close()

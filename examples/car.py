@@ -5,6 +5,7 @@
     make run ARGS="-- --laps 3"                             # until 3 laps (no time limit unless --seconds)
     make run ARGS="-- --pilot user --record data/tub"       # the scripted "user" drives and records
     make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model (.onnx or .tflite)
+    make run ARGS="-- --web"                                # drive it yourself from a browser or a phone
     asyncdonkey run examples/car.py --hz 50 -- --laps 3     # any rate; stop after 3 laps
 
 The parts are the ones a real car uses, in Donkeycar's order and with Donkeycar's channel names; only the
@@ -28,6 +29,11 @@ Status                    sim/laps, sim/cte, sim/off_track
 The simulated controller is a scripted driver (pure pursuit with a human-like wobble) standing in for a person
 with a joystick. It keeps driving "in its head" while the pilot has the car, so recordings made in pilot mode
 carry the driver's command for every frame the pilot saw: the labels a DAgger round trains on.
+
+With ``--web`` a person drives instead: the controller is the :class:`~asyncdonkey.parts.web.WebController`
+(open the URL it prints), the drive runs until Ctrl-C, and the page's mode buttons hand the car to the pilot
+and back. The simulated car has no ESC, so :class:`StaleThrottleStop` does what ``PWMThrottle``'s failsafe does
+on a real car: a page that goes quiet, hidden or away stops the car.
 """
 
 from __future__ import annotations
@@ -119,6 +125,22 @@ class SimController:
         else:
             recording = True
         return angle, throttle, self.mode, recording
+
+
+class StaleThrottleStop:
+    """The simulator's stand-in for ``PWMThrottle``'s stale-command failsafe: throttle 0 once the command is
+    ``failsafe_age_s`` old (wire it with ``inputs=["throttle", "throttle@age"]``)."""
+
+    def __init__(self, failsafe_age_s: float = 0.25) -> None:
+        self.failsafe_age_s = failsafe_age_s
+        self.events = 0
+        self._stale = False
+
+    def run(self, throttle: Any, age: float) -> Any:
+        stale = not age < self.failsafe_age_s
+        self.events += stale and not self._stale
+        self._stale = stale
+        return 0.0 if stale else throttle
 
 
 class Status:
@@ -239,18 +261,20 @@ def make_car(
     rate_hz: float = DRIVE_LOOP_HZ,
     pilot_mode: str = "frame",
     pilot_delay: float = 0.0,
+    web: dict[str, Any] | None = None,
 ) -> tuple[Vehicle, SimCar]:
     """Assemble the simulated car. ``pilot`` is a model path (``.onnx`` or ``.tflite``) or ``"user"`` (no pilot).
 
     ``pilot_mode``: ``"in-order"`` (the pilot inside the tick, as Donkeycar runs it), ``"pipelined"`` (beside
     the ticks, started each tick) or ``"frame"`` (beside the ticks, started by each new camera frame, with the
     drive mode and the car reacting at once to its commands). ``pilot_delay`` adds that many seconds to each
-    inference, to drive with the pilot a Raspberry Pi would run (``--pilot-delay 0.08``).
+    inference, to drive with the pilot a Raspberry Pi would run (``--pilot-delay 0.08``). ``web``: drive from a
+    browser; the dict holds :class:`~asyncdonkey.parts.web.WebController` arguments (``{}`` for the defaults).
 
     Returns the vehicle and the simulated car (for its simulator's state after the drive).
     """
     user_only = str(pilot) == "user"
-    drive_mode = normalise_mode(mode or ("user" if user_only else "local"), "car.py --mode")
+    drive_mode = normalise_mode(mode or ("user" if user_only or web is not None else "local"), "car.py --mode")
     if user_only and drive_mode != "user":
         raise ValueError(f"--mode {drive_mode} needs a pilot; --pilot user drives in user mode only")
 
@@ -259,12 +283,18 @@ def make_car(
     car.sim.render()  # builds the track texture and camera tables now, not in the first tick
     v.add(car.camera, outputs=["cam/image_array"])
     v.add(car.telemetry, outputs=list(TELEMETRY_OUTPUTS))
-    driver = ScriptedDriver(car.sim.track, seed=seed, rate_hz=rate_hz)
-    v.add(
-        SimController(driver, drive_mode, record is not None),
-        inputs=["sim/x", "sim/y", "sim/heading"],
-        outputs=["user/angle", "user/throttle", "user/mode", "recording"],
-    )
+    if web is not None:
+        from asyncdonkey.parts.web import WebController
+
+        controller = WebController(mode=drive_mode, vehicle=v, **web)
+        v.add(controller, inputs=controller.inputs, outputs=controller.outputs, name="web")
+    else:
+        driver = ScriptedDriver(car.sim.track, seed=seed, rate_hz=rate_hz)
+        v.add(
+            SimController(driver, drive_mode, record is not None),
+            inputs=["sim/x", "sim/y", "sim/heading"],
+            outputs=["user/angle", "user/throttle", "user/mode", "recording"],
+        )
     if pilot_mode not in PILOT_MODES:
         raise ValueError(f"car.py --pilot-mode: expected one of {', '.join(PILOT_MODES)}, got {pilot_mode!r}")
     react = not user_only and pilot_mode == "frame"
@@ -288,7 +318,11 @@ def make_car(
         outputs=["angle", "throttle"],
         react=react,
     )
-    v.add(car, inputs=["angle", "throttle"], react=react)
+    if web is not None:
+        v.add(StaleThrottleStop(), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"], react=react)
+        v.add(car, inputs=["angle", "sim/throttle"], react=react)
+    else:
+        v.add(car, inputs=["angle", "throttle"], react=react)
     if record is not None:
         from asyncdonkey.parts.tub import TubWriter
 
@@ -321,7 +355,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "--seconds",
         type=option(non_negative_float),
         default=None,
-        help=f"stop after S seconds (0: no time limit; default {DEFAULT_SECONDS:g}, or no limit with --laps)",
+        help=f"stop after S seconds (0: no time limit; default {DEFAULT_SECONDS:g}, or no limit with --laps or --web)",
     )
     ap.add_argument(
         "--laps", type=option(non_negative_int), default=0, help="stop after N laps (0: no limit; the default)"
@@ -348,9 +382,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="add S seconds to each inference (0.08: a Raspberry Pi 4's float32 pilot)",
     )
     ap.add_argument("--quiet", action="store_true", help="no live status line")
+    ap.add_argument("--web", action="store_true", help="drive from a browser: the web controller replaces the script")
+    ap.add_argument("--web-port", type=option(non_negative_int), default=8887, help="the web controller's port")
+    ap.add_argument(
+        "--web-host", default="0.0.0.0", help="address to listen on (default: all, so a phone on the LAN can drive)"
+    )
     args = ap.parse_args(argv)
-    if args.seconds is None:  # --laps N drives until N laps; a time limit only when asked for
-        args.seconds = 0.0 if args.laps else DEFAULT_SECONDS
+    if args.seconds is None:  # --laps N or --web drive without a time limit; otherwise DEFAULT_SECONDS
+        args.seconds = 0.0 if args.laps or args.web else DEFAULT_SECONDS
     return args
 
 
@@ -372,5 +411,6 @@ def build(argv: list[str]) -> Vehicle:
         status=None if args.quiet else sys.stderr,
         pilot_mode=args.pilot_mode,
         pilot_delay=args.pilot_delay,
+        web={"port": args.web_port, "host": args.web_host} if args.web else None,
     )
     return vehicle

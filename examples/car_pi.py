@@ -3,6 +3,7 @@
 Run it with::
 
     asyncdonkey run examples/car_pi.py                                  # drive by hand, record with B
+    asyncdonkey run examples/car_pi.py -- --web                         # drive from a phone's browser instead
     asyncdonkey run examples/car_pi.py -- --model models/pilot.onnx     # A cycles user / local_angle / local
     asyncdonkey run examples/car_pi.py -- STEERING_LEFT_PWM=470 CAMERA_INDEX=1 HAVE_IMU=false
 
@@ -11,6 +12,8 @@ overridden after ``--`` as ``NAME=VALUE``. The parts, in tick order::
 
     CvCamera            -> cam/image_array
     JoystickController  -> user/angle, user/throttle, user/mode, recording
+      or WebController  cam/image_array, tub/num_records, user/mode, recording       (--web)
+                        -> user/angle, user/throttle, user/mode, recording, web/buttons
     PilotCondition      user/mode -> run_pilot                                     (with --model)
     pilot (load_pilot)  cam/image_array -> pilot/angle, pilot/throttle             (with --model, run_pilot)
     DriveMode           user/mode, user/*, pilot/* -> angle, throttle
@@ -59,6 +62,10 @@ class PiCarConfig:
     JOYSTICK_MODE_BUTTON: int = 0
     JOYSTICK_RECORD_BUTTON: int = 1
     JOYSTICK_ESTOP_BUTTON: int = 3
+    # controller: the gamepad (--js, the default here) or the web page (--web)
+    USE_JOYSTICK_AS_DEFAULT: bool = True
+    WEB_CONTROL_PORT: int = 8887
+    WEB_INIT_MODE: str = "user"
     # PWM steering and throttle (PCA9685)
     PWM_STEERING_PIN: str = "PCA9685.1:40.1"
     PWM_STEERING_SCALE: float = 1.0
@@ -135,6 +142,9 @@ def parse_args(argv: list[str] | None) -> tuple[PiCarConfig, argparse.Namespace]
     parser = argparse.ArgumentParser(prog="car_pi.py", description="Raspberry Pi donkey car")
     parser.add_argument("--model", help="pilot model, .onnx or .tflite (enables the local_angle and local modes)")
     parser.add_argument("--tub", help="record into this tub (default: DATA_PATH)")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--js", action="store_true", help="drive with the gamepad (USE_JOYSTICK_AS_DEFAULT)")
+    which.add_argument("--web", action="store_true", help="drive from a browser (prints the URL with its token)")
     parser.add_argument("settings", nargs="*", metavar="NAME=VALUE", help="override a setting (Donkeycar names)")
     args = parser.parse_args(argv or [])
     cfg = PiCarConfig()
@@ -160,20 +170,31 @@ def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig 
     )
     v.add(camera, outputs=["cam/image_array"], threaded=True, name="camera")
 
-    mapping = JoystickMapping(
-        steering_axis=cfg.JOYSTICK_STEERING_AXIS,
-        throttle_axis=cfg.JOYSTICK_THROTTLE_AXIS,
-        invert_throttle=cfg.JOYSTICK_THROTTLE_INVERTED,
-        steering_scale=cfg.JOYSTICK_STEERING_SCALE,
-        deadzone=cfg.JOYSTICK_DEADZONE,
-        mode_button=cfg.JOYSTICK_MODE_BUTTON,
-        record_button=cfg.JOYSTICK_RECORD_BUTTON,
-        estop_button=cfg.JOYSTICK_ESTOP_BUTTON,
-        # Without a pilot there is nobody to hand the wheel to: the mode stays "user".
-        modes=DRIVE_MODES if args.model else ("user",),
-    )
-    controller = JoystickController(cfg.JOYSTICK_DEVICE_FILE, mapping, max_throttle=cfg.JOYSTICK_MAX_THROTTLE)
-    v.add(controller, outputs=controller.outputs, name="joystick")
+    steering = PWMSteering.from_config(cfg, buses=buses)
+    throttle = PWMThrottle.from_config(cfg, buses=buses)
+    # Without a pilot there is nobody to hand the wheel to: the mode stays "user".
+    modes = DRIVE_MODES if args.model else ("user",)
+    if args.web or (cfg.USE_JOYSTICK_AS_DEFAULT is False and not args.js):
+        from asyncdonkey.parts.web import WebController
+
+        web = WebController(
+            cfg.WEB_CONTROL_PORT, cfg.WEB_INIT_MODE, modes=modes, vehicle=v, steering=steering, throttle=throttle
+        )
+        v.add(web, inputs=web.inputs, outputs=web.outputs, name="web")
+    else:
+        mapping = JoystickMapping(
+            steering_axis=cfg.JOYSTICK_STEERING_AXIS,
+            throttle_axis=cfg.JOYSTICK_THROTTLE_AXIS,
+            invert_throttle=cfg.JOYSTICK_THROTTLE_INVERTED,
+            steering_scale=cfg.JOYSTICK_STEERING_SCALE,
+            deadzone=cfg.JOYSTICK_DEADZONE,
+            mode_button=cfg.JOYSTICK_MODE_BUTTON,
+            record_button=cfg.JOYSTICK_RECORD_BUTTON,
+            estop_button=cfg.JOYSTICK_ESTOP_BUTTON,
+            modes=modes,
+        )
+        controller = JoystickController(cfg.JOYSTICK_DEVICE_FILE, mapping, max_throttle=cfg.JOYSTICK_MAX_THROTTLE)
+        v.add(controller, outputs=controller.outputs, name="joystick")
 
     if args.model:
         from asyncdonkey.parts.pilot import load_pilot
@@ -191,8 +212,8 @@ def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig 
         inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
         outputs=["angle", "throttle"],
     )
-    v.add(PWMSteering.from_config(cfg, buses=buses), inputs=["angle"], name="steering")
-    v.add(PWMThrottle.from_config(cfg, buses=buses), inputs=["throttle", "throttle@age"], name="throttle")
+    v.add(steering, inputs=["angle"], name="steering")
+    v.add(throttle, inputs=["throttle", "throttle@age"], name="throttle")
 
     inputs = ["cam/image_array", "user/angle", "user/throttle", "user/mode"]
     types = ["image_array", "float", "float", "str"]

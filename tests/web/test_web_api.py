@@ -110,7 +110,13 @@ async def test_a_command_drives_the_pwm_and_a_silent_driver_trips_the_failsafe(t
     async with driving(car), aiohttp.ClientSession(headers=auth(car)) as http:
         async with http.ws_connect(car.base + "/wsDrive") as ws:
             hello = await ws.receive_json()
-            assert hello == {"driveMode": "user", "recording": False, "num_records": 0, "control": "free"}
+            assert hello == {
+                "driveMode": "user",
+                "recording": False,
+                "num_records": 0,
+                "control": "free",
+                "modes": ["user", "local_angle", "local"],
+            }
             await ws.send_json({"angle": 0.5, "throttle": 0.4})
             assert (await next_json(ws, "control"))["control"] == "you"
             await await_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward throttle pulse")

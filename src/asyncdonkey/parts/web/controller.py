@@ -35,7 +35,7 @@ import socket
 import ssl
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from importlib import resources
 from typing import Any, Final, TextIO
 
@@ -43,7 +43,7 @@ from aiohttp import WSMsgType, web
 
 from ...clock import Clock, get_clock
 from ...ratelimit import LogThrottle
-from ..control import USER, normalise_mode
+from ..control import DRIVE_MODES, USER, normalise_mode
 from .auth import TOKEN_PARAM, Access, WebConfigError, is_loopback, new_token, origin_allowed
 from .calibrate import CalibrationError, apply_calibration, current_calibration
 from .desk import Command, CommandError, Desk, parse_command
@@ -89,6 +89,7 @@ class WebController:
     Args:
         port: TCP port (Donkeycar's ``WEB_CONTROL_PORT``, 8887); 0 picks a free one (see :attr:`port`).
         mode: the drive mode at start (Donkeycar's ``WEB_INIT_MODE``).
+        modes: the drive modes the page may choose (without a pilot: ``("user",)``); others are refused.
         host: address to listen on; the default, every interface, is what a phone on the car's Wi-Fi needs.
         token: the access token; by default a new random one per start. ``None`` disables the check and is
             refused unless ``host`` is a loopback address.
@@ -109,6 +110,7 @@ class WebController:
         port: int = 8887,
         mode: str = USER,
         *,
+        modes: Sequence[str] = DRIVE_MODES,
         host: str = "0.0.0.0",
         token: str | _NewToken | None = NEW_TOKEN,
         vehicle: Any = None,
@@ -155,7 +157,10 @@ class WebController:
 
         self.angle = 0.0
         self.throttle = 0.0
+        self.modes = tuple(normalise_mode(m, "WebController modes") for m in modes)
         self.mode = normalise_mode(mode, "WebController mode")
+        if self.mode not in self.modes:
+            raise WebConfigError(f"WebController: mode {self.mode!r} is not one of modes {self.modes}")
         self.recording = False
         self.num_records = 0
         self._mode_latch: str | None = None
@@ -283,7 +288,12 @@ class WebController:
         return clock.now()
 
     def apply(self, client: object, cmd: Command) -> str:
-        """Apply one command from ``client``; returns its role afterwards (``you``, ``other`` or ``free``)."""
+        """Apply one command from ``client``; returns its role afterwards (``you``, ``other`` or ``free``).
+
+        Raises :class:`~.desk.CommandError` for a drive mode not in ``modes`` (nothing of the command is applied).
+        """
+        if cmd.mode is not None and cmd.mode not in self.modes:
+            raise CommandError(f"web command: drive mode {cmd.mode!r} is not available here (modes: {self.modes})")
         now = self._now()
         before = self.desk.driver
         if cmd.stop:
@@ -382,7 +392,11 @@ class WebController:
         except (ValueError, CommandError) as exc:  # json.JSONDecodeError is a ValueError
             self.bad_commands += 1
             return web.json_response({"error": str(exc)}, status=400)
-        role = self.apply(f"http:{request.remote}", cmd)
+        try:
+            role = self.apply(f"http:{request.remote}", cmd)
+        except CommandError as exc:
+            self.bad_commands += 1
+            return web.json_response({"error": str(exc)}, status=400)
         if role == "other" and cmd.drives:
             return web.json_response({"control": role, "error": "another client is driving"}, status=409)
         return web.json_response({"control": role})
@@ -398,6 +412,7 @@ class WebController:
             "recording": self.recording,
             "num_records": self.num_records,
             "control": role,
+            "modes": list(self.modes),
         }
         if self.last_health is not None:
             hello["health"] = self.last_health
@@ -414,12 +429,11 @@ class WebController:
 
     def _on_message(self, ws: web.WebSocketResponse, text: str) -> None:
         try:
-            cmd = parse_command(json.loads(text))
+            role = self.apply(ws, parse_command(json.loads(text)))
         except (ValueError, CommandError) as exc:
             self.bad_commands += 1
             self._send(ws, {"error": str(exc)})
             return
-        role = self.apply(ws, cmd)
         if self._clients.get(ws) != role:
             self._clients[ws] = role
             self._send(ws, {"control": role})

@@ -40,6 +40,9 @@
     return false;
   }
   function onMessage(m) {
+    if ("modes" in m) {
+      for (const b of document.querySelectorAll("#modes button")) b.hidden = !m.modes.includes(b.dataset.mode);
+    }
     if ("driveMode" in m) { st.mode = m.driveMode; showMode(); }
     if ("recording" in m) { st.recording = !!m.recording; showRecording(); }
     if ("num_records" in m) $("count").textContent = m.num_records;

@@ -1,6 +1,6 @@
 """Run every benchmark and print one results table; ``--write-readme`` also puts it into README.md.
 
-    python benchmarks/run_all.py                  # full runs (about five minutes with Donkeycar installed)
+    python benchmarks/run_all.py                  # full runs (about six minutes with Donkeycar installed)
     python benchmarks/run_all.py --quick          # short runs, for a look
     python benchmarks/run_all.py --write-readme   # `make bench`: full runs, README table and results JSON
     python benchmarks/run_all.py --only safety --write-readme   # rerun one; the others keep their saved figures
@@ -184,6 +184,20 @@ def mcap_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def web_rows(d: dict[str, Any]) -> list[Row]:
+    rows: list[Row] = []
+    for key, label in (("latency_p50_ms", "p50"), ("latency_p99_ms", "p99")):
+        o, t = _get(d, "ours", "0", key), _get(d, "donkeycar", "0", key)
+        rows.append(("web", f"WebSocket command to Memory {label} (ms)", _fmt(o, 1), _fmt(t, 1), _ratio(o, t)))
+    for n in ("0", "1", "3"):
+        name = f"web, {n} video viewer{'' if n == '1' else 's'}"
+        o, t = _get(d, "ours", n, "cpu_pct"), _get(d, "donkeycar", n, "cpu_pct")
+        rows.append((name, "car process CPU (% of a core)", _fmt(o, 1), _fmt(t, 1), _ratio(o, t)))
+        o, t = _get(d, "ours", n, "lateness_p99_ms"), _get(d, "donkeycar", n, "lateness_p99_ms")
+        rows.append((name, "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "tub": tub_rows,
@@ -191,6 +205,7 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "safety": safety_rows,
     "control_periods": control_rows,
     "mcap_recorder": mcap_rows,
+    "web": web_rows,
 }
 
 

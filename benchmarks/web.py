@@ -1,0 +1,286 @@
+"""Web controller cost: command latency and what video viewers cost the car, beside Donkeycar's.
+
+Both controllers run as a part of the same asyncdonkey drive loop (20 Hz, uvloop), fed by the same camera (a new
+160x120 frame every tick, 20 fps), so the difference is the web controller alone:
+
+* ours: :class:`~asyncdonkey.parts.web.WebController` (aiohttp on the loop; one JPEG per new frame, shared);
+* Donkeycar 5.3's ``LocalWebController`` (tornado in its own thread, as a threaded part; its ``/video``
+  encodes a JPEG every 5 ms for each viewer).
+
+Figures:
+
+* **command latency**: a WebSocket client (its own thread and event loop) sends ``{"angle": a, "throttle": 0}``
+  every 37 ms with a fresh ``a``; a part after the controller records when ``user/angle`` becomes ``a`` in
+  Memory. p50 / p99 in ms. A command waits for the next tick (50 ms period), so the p50 is about half a period
+  for both: what differs is the tail.
+* **CPU** of the car's process (all its threads; the viewers run in another process), in % of one core, and
+  **tick lateness** p99 (the loop's own profiler), with 0, 1 and 3 viewers of ``/video`` reading as fast as
+  they can, plus the frames each viewer received per second.
+
+    python benchmarks/web.py            # 8 s per configuration (about 1.5 min with Donkeycar)
+    python benchmarks/web.py --quick    # 2 s per configuration
+    python benchmarks/web.py --json     # figures as JSON for benchmarks/run_all.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import io
+import json
+import logging
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from prettytable import PrettyTable
+
+from asyncdonkey import Vehicle
+from asyncdonkey.loop import run_blocking
+from asyncdonkey.parts.web import WEB_INPUTS, WEB_OUTPUTS, WebController
+from machine_info import describe
+
+try:  # Donkeycar prints a banner on import; keep it out of the figures
+    with contextlib.redirect_stdout(io.StringIO()):
+        from donkeycar.parts.web_controller.web import LocalWebController
+except ImportError:  # pragma: no cover - donkeycar (with tornado and requests) is optional
+    LocalWebController = None
+
+RATE_HZ = 20
+VIEWERS = (0, 1, 3)
+SEND_EVERY_S = 0.037
+BOUNDARY = b"--boundarydonotcross"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Camera:
+    """A new frame object every tick (20 fps at 20 Hz), cycling through textured road-like images."""
+
+    def __init__(self) -> None:
+        rng = np.random.default_rng(0)
+        yy, xx = np.mgrid[0:120, 0:160]
+        self.frames = []
+        for k in range(20):
+            road = np.abs(xx - 80 - 20 * np.sin(k / 5 + yy / 40)) < (yy - 30).clip(0) * 0.9
+            img = np.where(road[..., None], 90, 60).astype(np.float32) + rng.normal(0, 6, (120, 160, 3))
+            self.frames.append(img.clip(0, 255).astype(np.uint8))
+        self.k = 0
+
+    def run(self) -> np.ndarray:
+        self.k += 1
+        return self.frames[self.k % len(self.frames)].copy()  # a new array, as a camera hands out
+
+
+class Probe:
+    """Records how long after it was sent each command's angle reached Memory."""
+
+    def __init__(self) -> None:
+        self.sent: dict[float, float] = {}
+        self.latency: list[float] = []
+        self.last: Any = None
+
+    def run(self, angle: Any) -> None:
+        if angle != self.last:
+            self.last = angle
+            t = self.sent.get(angle)
+            if t is not None:
+                self.latency.append(time.monotonic() - t)
+
+
+if LocalWebController is not None:
+
+    class DonkeyController(LocalWebController):  # type: ignore[misc, valid-type]
+        """Donkeycar's controller with a shutdown that stops its tornado loop (its own does nothing)."""
+
+        def shutdown(self) -> None:
+            if self.loop is not None:
+                self.loop.add_callback(self.loop.stop)
+
+
+def sender(port: int, headers: dict[str, str], probe: Probe, stop: threading.Event) -> None:
+    """The phone: a WebSocket client sending a fresh angle every ``SEND_EVERY_S`` in its own thread."""
+    import aiohttp
+
+    async def main() -> None:
+        async with (
+            aiohttp.ClientSession(headers=headers) as http,
+            http.ws_connect(f"http://127.0.0.1:{port}/wsDrive") as ws,
+        ):
+            k = 0
+            while not stop.is_set():
+                k += 1
+                angle = round((k % 997 + 1) / 1000, 6)
+                probe.sent[angle] = time.monotonic()
+                await ws.send_str(json.dumps({"angle": angle, "throttle": 0.0}))
+                await asyncio.sleep(SEND_EVERY_S)
+
+    asyncio.run(main())
+
+
+async def wait_port(port: int, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            _, w = await asyncio.open_connection("127.0.0.1", port)
+            w.close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.05)
+
+
+async def drive(kind: str, viewers: int, seconds: float) -> dict[str, Any]:
+    port = free_port()
+    v = Vehicle()
+    v.add(Camera(), outputs=["cam/image_array"], name="camera")
+    headers: dict[str, str] = {}
+    if kind == "ours":
+        ctr = WebController(port, host="127.0.0.1", announce=None)
+        v.add(ctr, inputs=list(WEB_INPUTS), outputs=list(WEB_OUTPUTS), name="web")
+    else:
+        ctr = DonkeyController(port=port)
+        v.add(ctr, inputs=list(WEB_INPUTS), outputs=list(WEB_OUTPUTS), threaded=True, name="web")
+    probe = Probe()
+    v.add(probe, inputs=["user/angle"], name="probe")
+    task = asyncio.create_task(v.run(rate_hz=RATE_HZ))
+    stop = threading.Event()
+    client: threading.Thread | None = None
+    try:
+        await wait_port(port)
+        if kind == "ours":
+            headers = {"Authorization": f"Token {ctr.token}"}
+        await asyncio.sleep(1.0)  # warm up
+        proc = None
+        if viewers:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--viewer-process",
+                json.dumps({"port": port, "n": viewers, "seconds": seconds + 1.0, "headers": headers}),
+                stdout=subprocess.PIPE,
+            )
+            await asyncio.sleep(0.5)  # the viewers connect
+        client = threading.Thread(target=sender, args=(port, headers, probe, stop), daemon=True)
+        client.start()
+        await asyncio.sleep(0.3)
+        n0 = v.profiler.lateness.count
+        probe.latency.clear()
+        cpu0, t0 = time.process_time(), time.monotonic()
+        await asyncio.sleep(seconds)
+        cpu, wall = time.process_time() - cpu0, time.monotonic() - t0
+        n1 = v.profiler.lateness.count
+        late = v.profiler.lateness.recent(drop_last=False)[-(n1 - n0) :]
+        lat = np.array(probe.latency)
+        stop.set()
+        frames_per_s = 0.0
+        if proc is not None:
+            out, _ = await proc.communicate()
+            got = json.loads(out)
+            frames_per_s = got["parts"] / got["seconds"] / viewers
+    finally:
+        stop.set()
+        v.stop()
+        await task
+        if client is not None:
+            client.join(5)
+    return {
+        "viewers": viewers,
+        "cpu_pct": 100.0 * cpu / wall,
+        "lateness_p99_ms": float(np.percentile(late, 99)) * 1e3,
+        "latency_p50_ms": float(np.percentile(lat, 50)) * 1e3 if len(lat) else None,
+        "latency_p99_ms": float(np.percentile(lat, 99)) * 1e3 if len(lat) else None,
+        "commands": len(lat),
+        "frames_per_s_per_viewer": frames_per_s,
+    }
+
+
+def viewer_process(spec: dict[str, Any]) -> None:
+    """``n`` viewers of ``/video`` reading as fast as they can for ``seconds``; prints the parts they got."""
+
+    async def one(stop_at: float) -> tuple[int, int]:
+        r, w = await asyncio.open_connection("127.0.0.1", spec["port"])
+        head = "".join(f"{k}: {v}\r\n" for k, v in spec["headers"].items())
+        w.write(f"GET /video HTTP/1.1\r\nHost: 127.0.0.1\r\n{head}\r\n".encode())
+        parts = nbytes = 0
+        tail = b""
+        while time.monotonic() < stop_at:
+            try:
+                chunk = await asyncio.wait_for(r.read(65536), 0.5)
+            except TimeoutError:
+                continue
+            if not chunk:
+                break
+            nbytes += len(chunk)
+            data = tail + chunk
+            parts += data.count(BOUNDARY)
+            tail = data[-(len(BOUNDARY) - 1) :]  # a boundary split across reads counts once
+        w.close()
+        return parts, nbytes
+
+    async def main() -> dict[str, Any]:
+        t0 = time.monotonic()
+        got = await asyncio.gather(*(one(t0 + spec["seconds"]) for _ in range(spec["n"])))
+        return {"parts": sum(p for p, _ in got), "bytes": sum(b for _, b in got), "seconds": time.monotonic() - t0}
+
+    print(json.dumps(asyncio.run(main())))
+
+
+def measure(seconds: float, with_dk: bool) -> dict[str, Any]:
+    results: dict[str, Any] = {"machine": describe(), "seconds": seconds, "rate_hz": RATE_HZ, "ours": {}}
+    kinds = ["ours"] + (["donkeycar"] if with_dk else [])
+    for kind in kinds:
+        results.setdefault(kind, {})
+        for n in VIEWERS:
+            results[kind][str(n)] = run_blocking(drive(kind, n, seconds))
+    return results
+
+
+def table(results: dict[str, Any]) -> str:
+    t = PrettyTable(["controller", "viewers", "CPU %", "lateness p99 ms", "cmd->memory p50/p99 ms", "fps/viewer"])
+    for kind in ("ours", "donkeycar"):
+        for n, r in results.get(kind, {}).items():
+            t.add_row(
+                [
+                    "asyncdonkey" if kind == "ours" else "Donkeycar 5.3",
+                    n,
+                    f"{r['cpu_pct']:.1f}",
+                    f"{r['lateness_p99_ms']:.2f}",
+                    f"{r['latency_p50_ms']:.1f} / {r['latency_p99_ms']:.1f}",
+                    f"{r['frames_per_s_per_viewer']:.0f}",
+                ]
+            )
+    return f"{t}\nmachine: {results['machine']}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=8.0, help="measured seconds per configuration")
+    parser.add_argument("--quick", action="store_true", help="2 s per configuration")
+    parser.add_argument("--no-donkeycar", action="store_true")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--viewer-process", metavar="SPEC", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.viewer_process:
+        viewer_process(json.loads(args.viewer_process))
+        return 0
+    logging.disable(logging.WARNING)
+    with_dk = LocalWebController is not None and not args.no_donkeycar
+    results = measure(2.0 if args.quick else args.seconds, with_dk)
+    print(json.dumps(results, indent=2) if args.json else table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

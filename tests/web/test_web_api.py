@@ -235,3 +235,20 @@ async def test_video_is_donkeycars_mjpeg_and_costs_one_encode_per_frame(tmp_path
         # one encode per new camera frame for three viewers (+1: the frame there when the first one came)
         assert car.ctr.hub.encodes <= new_frames + 1
         assert json.dumps(car.ctr.state())  # /status is JSON-able
+
+
+@pytest.mark.asyncio
+async def test_a_quiet_driver_loses_control_with_the_tick_in_a_worker_thread(tmp_path):
+    # executor=True: run() happens off the loop thread, and its pushes must still reach the pages
+    car = WebCar(tmp_path, executor=True, idle_release_s=0.3, health_every_s=60)
+    async with (
+        driving(car),
+        aiohttp.ClientSession(headers=auth(car)) as http,
+        http.ws_connect(car.base + "/wsDrive") as ws,
+    ):
+        await ws.receive_json()
+        await ws.send_json({"angle": 0.2, "throttle": 0.3})
+        assert (await next_json(ws, "control"))["control"] == "you"
+        # 0.3 s of silence: the tick (in its worker) releases the driver and tells the page
+        assert (await next_json(ws, "control"))["control"] == "free"
+        await await_until(lambda: car.mem["user/throttle"] == 0.0 and car.mem["user/angle"] == 0.0, 2, "neutral")

@@ -45,7 +45,7 @@ class MovingCamera:
 
 
 class WebCar:
-    def __init__(self, tmp_path: Path, *, camera_every: int = 2, **controller: Any) -> None:
+    def __init__(self, tmp_path: Path, *, camera_every: int = 2, executor: bool = False, **controller: Any) -> None:
         self.i2c = I2CSimulator()
         self.pca = self.i2c.attach(PCA9685Model(), address=0x40, bus=1)
         self.buses = self.i2c.registry(retry_delay_s=0)
@@ -57,7 +57,7 @@ class WebCar:
         settings: dict[str, Any] = {"host": "127.0.0.1", "port": 0, "announce": None, "health_every_s": 0.2}
         settings.update(controller)
         self.ctr = WebController(vehicle=v, steering=self.steering, throttle=self.throttle, **settings)
-        v.add(self.ctr, inputs=list(self.ctr.inputs), outputs=self.ctr.outputs, name="web")
+        v.add(self.ctr, inputs=list(self.ctr.inputs), outputs=self.ctr.outputs, name="web", executor=executor)
         v.add(
             DriveMode(),
             inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],

@@ -468,7 +468,18 @@ class WebController:
 
     # ================================================================================== pushes
     def _send(self, ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:
-        task = asyncio.get_running_loop().create_task(_send_json(ws, payload))
+        """Queue a push to one page; from the loop thread or any other (a tick run with ``executor=True``)."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            here = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        if here is not loop:
+            loop.call_soon_threadsafe(self._send, ws, payload)
+            return
+        task = loop.create_task(_send_json(ws, payload))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 

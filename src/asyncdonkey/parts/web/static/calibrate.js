@@ -14,7 +14,12 @@
     };
     ws.onmessage = (ev) => {
       const m = JSON.parse(ev.data);
-      if (m.config) { showConfig(m.config); say("in force", false); }
+      if (m.config) {
+        const none = Object.keys(m.config).length === 0;
+        $("apply").hidden = none;
+        if (none) say("this car gave its web controller no PWM steering or throttle to calibrate", true);
+        else { showConfig(m.config); say("in force", false); }
+      }
       if (m.error) say(m.error, true);
     };
   }

@@ -189,6 +189,9 @@ def web_rows(d: dict[str, Any]) -> list[Row]:
     for key, label in (("latency_p50_ms", "p50"), ("latency_p99_ms", "p99")):
         o, t = _get(d, "ours", "0", key), _get(d, "donkeycar", "0", key)
         rows.append(("web", f"WebSocket command to Memory {label} (ms)", _fmt(o, 1), _fmt(t, 1), _ratio(o, t)))
+    for key, label in (("to_pwm_p50_ms", "p50"), ("to_pwm_p99_ms", "p99")):
+        o = _get(d, "ours", "0", key)
+        rows.append(("web", f"command arrival to PWM write {label} (ms)", _fmt(o, 1), "n/a", ""))
     for n in ("0", "1", "3"):
         name = f"web, {n} video viewer{'' if n == '1' else 's'}"
         o, t = _get(d, "ours", n, "cpu_pct"), _get(d, "donkeycar", n, "cpu_pct")

@@ -12,7 +12,10 @@ Figures:
 * **command latency**: a WebSocket client (its own thread and event loop) sends ``{"angle": a, "throttle": 0}``
   every 37 ms with a fresh ``a``; a part after the controller records when ``user/angle`` becomes ``a`` in
   Memory. p50 / p99 in ms. A command waits for the next tick (50 ms period), so the p50 is about half a period
-  for both: what differs is the tail.
+  for both: what differs is the tail. Behind the controller, ``DriveMode`` and a ``PWMThrottle`` (on a simulated
+  PCA9685) with ``throttle@age``, as on a car; for ours the drive's profiler also gives **command arrival to PWM
+  write** (the throttle's sensing-to-actuation latency, whose origin is the command's arrival). Donkeycar's
+  controller does not say when its commands arrived, so there is no such figure for it.
 * **CPU** of the car's process (all its threads; the viewers run in another process), in % of one core, and
   **tick lateness** p99 (the loop's own profiler), with 0, 1 and 3 viewers of ``/video`` reading as fast as
   they can, plus the frames each viewer received per second.
@@ -43,6 +46,8 @@ from prettytable import PrettyTable
 
 from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
+from asyncdonkey.parts.actuators import PWMThrottle
+from asyncdonkey.parts.control import DriveMode
 from asyncdonkey.parts.web import WEB_INPUTS, WEB_OUTPUTS, WebController
 from machine_info import describe
 
@@ -154,6 +159,17 @@ async def drive(kind: str, viewers: int, seconds: float) -> dict[str, Any]:
         v.add(ctr, inputs=list(WEB_INPUTS), outputs=list(WEB_OUTPUTS), threaded=True, name="web")
     probe = Probe()
     v.add(probe, inputs=["user/angle"], name="probe")
+    from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+    i2c = I2CSimulator()
+    i2c.attach(PCA9685Model(), address=0x40, bus=1)
+    buses = i2c.registry(retry_delay_s=0)
+    v.add(
+        DriveMode(),
+        inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
+        outputs=["angle", "throttle"],
+    )
+    v.add(PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0.1), inputs=["throttle", "throttle@age"], name="throttle")
     task = asyncio.create_task(v.run(rate_hz=RATE_HZ))
     stop = threading.Event()
     client: threading.Thread | None = None
@@ -176,25 +192,30 @@ async def drive(kind: str, viewers: int, seconds: float) -> dict[str, Any]:
         client.start()
         await asyncio.sleep(0.3)
         n0 = v.profiler.lateness.count
+        pwm = v.profiler.latency_for("throttle")
+        p0 = pwm.count
         probe.latency.clear()
         cpu0, t0 = time.process_time(), time.monotonic()
         await asyncio.sleep(seconds)
         cpu, wall = time.process_time() - cpu0, time.monotonic() - t0
         n1 = v.profiler.lateness.count
         late = v.profiler.lateness.recent(drop_last=False)[-(n1 - n0) :]
+        p1 = pwm.count
+        to_pwm = pwm.recent(drop_last=False)[-(p1 - p0) :] if p1 > p0 else np.array([])
         lat = np.array(probe.latency)
         stop.set()
         frames_per_s = 0.0
         if proc is not None:
             out, _ = await proc.communicate()
             got = json.loads(out)
-            frames_per_s = got["parts"] / got["seconds"] / viewers
+            frames_per_s = float(np.mean(got["fps"]))
     finally:
         stop.set()
         v.stop()
         await task
         if client is not None:
             client.join(5)
+        buses.close_all()
     return {
         "viewers": viewers,
         "cpu_pct": 100.0 * cpu / wall,
@@ -202,6 +223,8 @@ async def drive(kind: str, viewers: int, seconds: float) -> dict[str, Any]:
         "latency_p50_ms": float(np.percentile(lat, 50)) * 1e3 if len(lat) else None,
         "latency_p99_ms": float(np.percentile(lat, 99)) * 1e3 if len(lat) else None,
         "commands": len(lat),
+        "to_pwm_p50_ms": float(np.percentile(to_pwm, 50)) * 1e3 if kind == "ours" and len(to_pwm) else None,
+        "to_pwm_p99_ms": float(np.percentile(to_pwm, 99)) * 1e3 if kind == "ours" and len(to_pwm) else None,
         "frames_per_s_per_viewer": frames_per_s,
     }
 
@@ -209,11 +232,12 @@ async def drive(kind: str, viewers: int, seconds: float) -> dict[str, Any]:
 def viewer_process(spec: dict[str, Any]) -> None:
     """``n`` viewers of ``/video`` reading as fast as they can for ``seconds``; prints the parts they got."""
 
-    async def one(stop_at: float) -> tuple[int, int]:
+    async def one(stop_at: float) -> tuple[int, int, float]:
         r, w = await asyncio.open_connection("127.0.0.1", spec["port"])
         head = "".join(f"{k}: {v}\r\n" for k, v in spec["headers"].items())
         w.write(f"GET /video HTTP/1.1\r\nHost: 127.0.0.1\r\n{head}\r\n".encode())
         parts = nbytes = 0
+        first = last = 0.0
         tail = b""
         while time.monotonic() < stop_at:
             try:
@@ -224,15 +248,25 @@ def viewer_process(spec: dict[str, Any]) -> None:
                 break
             nbytes += len(chunk)
             data = tail + chunk
-            parts += data.count(BOUNDARY)
-            tail = data[-(len(BOUNDARY) - 1) :]  # a boundary split across reads counts once
+            n = data.count(BOUNDARY + b"\n")  # a part's boundary line (the header's "boundary=" ends in \r\n)
+            if n:
+                last = time.monotonic()
+                if not parts:
+                    first = last
+                parts += n
+            tail = data[-len(BOUNDARY) :]  # a boundary line split across reads counts once
         w.close()
-        return parts, nbytes
+        return parts, nbytes, (parts - 1) / (last - first) if parts > 1 and last > first else 0.0
 
     async def main() -> dict[str, Any]:
         t0 = time.monotonic()
         got = await asyncio.gather(*(one(t0 + spec["seconds"]) for _ in range(spec["n"])))
-        return {"parts": sum(p for p, _ in got), "bytes": sum(b for _, b in got), "seconds": time.monotonic() - t0}
+        return {
+            "parts": sum(g[0] for g in got),
+            "bytes": sum(g[1] for g in got),
+            "fps": [g[2] for g in got],
+            "seconds": time.monotonic() - t0,
+        }
 
     print(json.dumps(asyncio.run(main())))
 
@@ -248,7 +282,9 @@ def measure(seconds: float, with_dk: bool) -> dict[str, Any]:
 
 
 def table(results: dict[str, Any]) -> str:
-    t = PrettyTable(["controller", "viewers", "CPU %", "lateness p99 ms", "cmd->memory p50/p99 ms", "fps/viewer"])
+    t = PrettyTable(
+        ["controller", "viewers", "CPU %", "lateness p99 ms", "cmd->memory p50/p99 ms", "arrival->PWM", "fps/viewer"]
+    )
     for kind in ("ours", "donkeycar"):
         for n, r in results.get(kind, {}).items():
             t.add_row(
@@ -258,6 +294,7 @@ def table(results: dict[str, Any]) -> str:
                     f"{r['cpu_pct']:.1f}",
                     f"{r['lateness_p99_ms']:.2f}",
                     f"{r['latency_p50_ms']:.1f} / {r['latency_p99_ms']:.1f}",
+                    "n/a" if r["to_pwm_p50_ms"] is None else f"{r['to_pwm_p50_ms']:.1f} / {r['to_pwm_p99_ms']:.1f}",
                     f"{r['frames_per_s_per_viewer']:.0f}",
                 ]
             )

@@ -132,6 +132,8 @@ async def test_a_command_drives_the_pwm_and_a_silent_driver_trips_the_failsafe(t
         # closing the page releases control at once and the throttle stops
         await await_until(lambda: car.throttle_pulse() == ZERO_PULSE, 3, "stopped after the page closed")
         assert car.ctr.desk.driver is None and car.mem["user/throttle"] == 0.0
+        latency = car.vehicle.profiler.latency.get("throttle")  # command arrival -> PWM write, measured
+        assert latency is not None and latency.count > 0 and 0 <= latency.recent(drop_last=False).min() < 1.0
 
 
 @pytest.mark.asyncio

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from web_rig import ZERO_PULSE, WebCar, await_until
 
+from asyncdonkey import PartError
 from asyncdonkey.parts.web.video import CONTENT_TYPE
 
 
@@ -254,3 +255,13 @@ async def test_a_quiet_driver_loses_control_with_the_tick_in_a_worker_thread(tmp
         # 0.3 s of silence: the tick (in its worker) releases the driver and tells the page
         assert (await next_json(ws, "control"))["control"] == "free"
         await await_until(lambda: car.mem["user/throttle"] == 0.0 and car.mem["user/angle"] == 0.0, 2, "neutral")
+
+
+@pytest.mark.asyncio
+async def test_a_taken_port_is_an_error_naming_it(tmp_path):
+    first = WebCar(tmp_path / "a")
+    async with driving(first):
+        second = WebCar(tmp_path / "b", port=first.ctr.port)
+        with pytest.raises(PartError, match=f"cannot listen on 127.0.0.1:{first.ctr.port}"):
+            await asyncio.wait_for(second.vehicle.run(rate_hz=50), 15)
+        second.buses.close_all()

@@ -238,14 +238,18 @@ class WebController:
         try:
             await runner.setup()
             site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
-            await site.start()
+            try:
+                await site.start()
+            except OSError as exc:
+                raise WebConfigError(f"WebController: cannot listen on {self.host}:{self.port}: {exc}") from exc
             bound = runner.addresses[0]
             self.port = int(bound[1])
             assert self._access is not None
             self._access.cookie = f"asyncdonkey-token-{self.port}"
             self._origin = clock.now()
-            self.url = self._urls()[0]
-            self._announce()
+            urls = await loop.run_in_executor(None, self._urls)  # may ask the resolver for this host's addresses
+            self.url = urls[0]
+            self._announce(urls)
             self.listening.set()
             tasks = [
                 asyncio.create_task(self.hub.run(), name="web video encoder"),
@@ -533,8 +537,7 @@ class WebController:
             hosts = [f"[{self.host}]" if ":" in self.host else self.host]
         return [f"{scheme}://{h}:{self.port}/drive{query}" for h in hosts]
 
-    def _announce(self) -> None:
-        urls = self._urls()
+    def _announce(self, urls: list[str]) -> None:
         logger.info("web controller listening on %s:%d", self.host, self.port)
         out = self.announce
         if out is None:

@@ -171,6 +171,48 @@ def test_a_closed_tab_stops_the_car_through_the_failsafe(browser: Any, car: WebC
     driver.close()
 
 
+def test_a_page_that_goes_hidden_hands_the_car_back(tab: Page, car: WebCar):
+    page = tab.page
+    car.ctr.desk.idle_release_s = 30.0  # only the page's own release can free control within the test
+    page.keyboard.down("ArrowUp")
+    wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the tab driving")
+    # what the browser does when the phone locks or another app comes to the front
+    page.evaluate(
+        "Object.defineProperty(document, 'visibilityState', {value: 'hidden', configurable: true});"
+        "document.dispatchEvent(new Event('visibilitychange'))"
+    )
+    wait_until(lambda: car.ctr.desk.driver is None, 2, "the hidden page to release control")
+    wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "the throttle at neutral")
+    page.wait_for_timeout(300)  # the key is still held, but a hidden page sends nothing
+    assert car.ctr.desk.driver is None and car.mem["user/throttle"] == 0
+    page.keyboard.up("ArrowUp")
+    car.ctr.desk.idle_release_s = 1.0
+
+
+def test_calibration_page_sets_the_steering_end_point(tab: Page, car: WebCar):
+    page = tab.page
+    page.goto(f"{car.base}/calibrate")
+    field = page.locator("#cfg-STEERING_LEFT_PWM")
+    field.wait_for(timeout=5_000)
+    assert field.input_value() == "460"
+    try:
+        field.fill("470")
+        page.click("#apply")
+        wait_until(lambda: car.steering.left_pulse == 470, what="the new left end point")
+        assert car.steering.neutral_pulse == 380  # the centre follows
+        field.fill("470")
+        page.locator("#cfg-STEERING_RIGHT_PWM").fill("470")
+        page.click("#apply")
+        page.wait_for_selector("#msg.bad", timeout=5_000)  # refused, with the reason shown
+        assert "both 470" in tab.text("#msg") and car.steering.right_pulse == 290
+    finally:
+        page.locator("#cfg-STEERING_LEFT_PWM").fill("460")
+        page.locator("#cfg-STEERING_RIGHT_PWM").fill("290")
+        page.click("#apply")
+        wait_until(lambda: car.steering.left_pulse == 460, what="the calibration restored")
+    assert tab.errors == []
+
+
 def test_without_the_token_the_browser_is_refused(browser: Any, car: WebCar):
     context = browser.new_context()
     try:

@@ -265,3 +265,15 @@ async def test_a_taken_port_is_an_error_naming_it(tmp_path):
         with pytest.raises(PartError, match=f"cannot listen on 127.0.0.1:{first.ctr.port}"):
             await asyncio.wait_for(second.vehicle.run(rate_hz=50), 15)
         second.buses.close_all()
+
+
+@pytest.mark.asyncio
+async def test_the_start_up_message_prints_the_url_and_a_qr_code(tmp_path):
+    import io
+
+    out = io.StringIO()
+    async with driving(WebCar(tmp_path, announce=out, qr=True)) as car:
+        text = out.getvalue()
+    assert car.ctr.url in text and "token changes at every start" in text
+    qr_lines = [line for line in text.splitlines() if set(line) & set("█▀▄")]
+    assert len(qr_lines) >= 10  # a version-2+ QR code, two modules per line in compact mode

@@ -519,8 +519,9 @@ class WebController:
                 try:
                     health.update(self._status())
                 except Exception as exc:  # a status callable must not take the controller down
-                    if self._log.allow("status", now):
-                        logger.error("web: the status callable failed: %r", exc)
+                    held = self._log.ready("status", now, "failures")
+                    if held is not None:
+                        logger.error("web: the status callable failed%s: %r", held, exc)
             health["viewers"] = self.hub.viewers
             self.last_health = health
             self._push_roles()

@@ -116,8 +116,9 @@ class FrameHub:
                 except (TypeError, ValueError) as exc:
                     self.encode_errors += 1
                     self._encoded = frame  # do not retry the same bad frame
-                    if self._log.allow("encode", loop.time()):
-                        logger.error("web video: frame not shown (%d so far): %s", self.encode_errors, exc)
+                    held = self._log.ready("encode", loop.time(), "frames not shown")
+                    if held is not None:
+                        logger.error("web video: a frame could not be shown%s: %s", held, exc)
                     continue
                 self._encoded = frame
                 self.jpeg = jpeg

@@ -219,3 +219,21 @@ def test_jpeg_encoding_keeps_colours_and_names_bad_frames():
         encode_jpeg(img.astype(np.float32), 90)
     with pytest.raises(ValueError, match="shape"):
         encode_jpeg(np.zeros((4, 4, 2), np.uint8), 90)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_frame_that_cannot_be_encoded_is_skipped_logged_and_counted(caplog):
+    hub = FrameHub()
+    runner = asyncio.create_task(hub.run())
+    await asyncio.sleep(0)
+    hub.viewers = 1
+    hub.offer(np.zeros((120, 160, 3), np.float32))  # not uint8
+    await asyncio.sleep(0.05)
+    assert (hub.encode_errors, hub.encodes, hub.seq) == (1, 0, 0)
+    assert "frame could not be shown" in caplog.text and "uint8" in caplog.text
+    hub.offer(_frame(7))
+    await asyncio.sleep(0.05)
+    assert (hub.encodes, hub.seq) == (1, 1)
+    await hub.close()
+    runner.cancel()

@@ -425,3 +425,20 @@ def test_clock_is_taken_lazily_from_the_running_loop(rig):
         return t._now == get_clock().now
 
     assert asyncio.run(main())
+
+
+def test_calibration_changes_live_and_is_checked_like_the_constructor(rig):
+    s, t = rig.steering(), rig.throttle()
+    assert s.calibrate(left_pulse=480, check_only=True) == {"left_pulse": 480, "right_pulse": 290}
+    assert s.left_pulse == 460  # a check changes nothing
+    s.calibrate(left_pulse=480, right_pulse=300)
+    assert s.neutral_pulse == donkeycar_map_range(0, -1, 1, 480, 300)
+    s.run(-1.0)
+    assert s.pulse == 480
+    with pytest.raises(ValueError, match="left_pulse and right_pulse are both 300"):
+        s.calibrate(left_pulse=300)
+    t.calibrate(zero_pulse=380)
+    assert t.neutral_pulse == 380 and t.map_throttle(0.0) == 380
+    with pytest.raises(ValueError, match=r"THROTTLE_STOPPED_PWM"):
+        t.calibrate(max_pulse=380)
+    assert t.max_pulse == 500

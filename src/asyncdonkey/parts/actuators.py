@@ -362,11 +362,7 @@ class PWMSteering(_PWMPart):
         buses: I2CBusRegistry | None = None,
         retry_s: float = 0.05,
     ) -> None:
-        for n, v in (("left_pulse", left_pulse), ("right_pulse", right_pulse)):
-            if not _is_number(v):
-                raise ValueError(f"PWMSteering: {n} (STEERING_{n[:-6].upper()}_PWM) must be a number, got {v!r}")
-        if left_pulse == right_pulse:
-            raise ValueError(f"PWMSteering: left_pulse and right_pulse are both {left_pulse}; calibrate them apart")
+        self._check_calibration(left_pulse, right_pulse)
         self.left_pulse = left_pulse
         self.right_pulse = right_pulse
         centre = donkeycar_map_range(0, self.LEFT_ANGLE, self.RIGHT_ANGLE, left_pulse, right_pulse)
@@ -393,6 +389,29 @@ class PWMSteering(_PWMPart):
             buses=buses,
             **kwargs,
         )
+
+    @staticmethod
+    def _check_calibration(left_pulse: Any, right_pulse: Any) -> None:
+        for n, v in (("left_pulse", left_pulse), ("right_pulse", right_pulse)):
+            if not _is_number(v):
+                raise ValueError(f"PWMSteering: {n} (STEERING_{n[:-6].upper()}_PWM) must be a number, got {v!r}")
+        if left_pulse == right_pulse:
+            raise ValueError(f"PWMSteering: left_pulse and right_pulse are both {left_pulse}; calibrate them apart")
+
+    def calibrate(
+        self, left_pulse: int | None = None, right_pulse: int | None = None, *, check_only: bool = False
+    ) -> dict[str, int]:
+        """Change the calibration live (``STEERING_LEFT_PWM``, ``STEERING_RIGHT_PWM``); ``None`` keeps a value.
+
+        Checked as the constructor checks it (``ValueError`` naming the setting); with ``check_only`` nothing
+        changes. The centre pulse follows. Returns the calibration in force (or that would be)."""
+        left = self.left_pulse if left_pulse is None else left_pulse
+        right = self.right_pulse if right_pulse is None else right_pulse
+        self._check_calibration(left, right)
+        if not check_only:
+            self.left_pulse, self.right_pulse = left, right
+            self.neutral_pulse = donkeycar_map_range(0, self.LEFT_ANGLE, self.RIGHT_ANGLE, left, right)
+        return {"left_pulse": int(left), "right_pulse": int(right)}
 
     def run(self, angle: float | None, angle_age: float | None = None) -> None:
         """Set the steering target (returns at once; the writer task does the I2C). ``angle_age`` (from an
@@ -451,14 +470,7 @@ class PWMThrottle(_PWMPart):
         buses: I2CBusRegistry | None = None,
         retry_s: float = 0.05,
     ) -> None:
-        for n, v in (("max_pulse", max_pulse), ("min_pulse", min_pulse), ("zero_pulse", zero_pulse)):
-            if not _is_number(v):
-                raise ValueError(f"PWMThrottle: {n} must be a number, got {v!r}")
-        if max_pulse == zero_pulse or min_pulse == zero_pulse:
-            raise ValueError(
-                f"PWMThrottle: zero_pulse ({zero_pulse}) must differ from max_pulse ({max_pulse}) and min_pulse "
-                f"({min_pulse}); calibrate THROTTLE_FORWARD_PWM / THROTTLE_STOPPED_PWM / THROTTLE_REVERSE_PWM"
-            )
+        self._check_calibration(max_pulse, zero_pulse, min_pulse)
         if failsafe_age_s is not None and not (_is_number(failsafe_age_s) and failsafe_age_s > 0):
             raise ValueError(f"PWMThrottle: failsafe_age_s must be a positive number or None, got {failsafe_age_s!r}")
         if not (_is_number(arm_s) and arm_s >= 0):
@@ -497,6 +509,39 @@ class PWMThrottle(_PWMPart):
             buses=buses,
             **kwargs,
         )
+
+    @staticmethod
+    def _check_calibration(max_pulse: Any, zero_pulse: Any, min_pulse: Any) -> None:
+        for n, v in (("max_pulse", max_pulse), ("min_pulse", min_pulse), ("zero_pulse", zero_pulse)):
+            if not _is_number(v):
+                raise ValueError(f"PWMThrottle: {n} must be a number, got {v!r}")
+        if max_pulse == zero_pulse or min_pulse == zero_pulse:
+            raise ValueError(
+                f"PWMThrottle: zero_pulse ({zero_pulse}) must differ from max_pulse ({max_pulse}) and min_pulse "
+                f"({min_pulse}); calibrate THROTTLE_FORWARD_PWM / THROTTLE_STOPPED_PWM / THROTTLE_REVERSE_PWM"
+            )
+
+    def calibrate(
+        self,
+        max_pulse: int | None = None,
+        zero_pulse: int | None = None,
+        min_pulse: int | None = None,
+        *,
+        check_only: bool = False,
+    ) -> dict[str, int]:
+        """Change the calibration live (``THROTTLE_FORWARD_PWM``, ``THROTTLE_STOPPED_PWM``,
+        ``THROTTLE_REVERSE_PWM``); ``None`` keeps a value. Checked as the constructor checks it; with
+        ``check_only`` nothing changes. The stopped pulse becomes the neutral (failsafe and shutdown) pulse."""
+        vals = {
+            "max_pulse": self.max_pulse if max_pulse is None else max_pulse,
+            "zero_pulse": self.zero_pulse if zero_pulse is None else zero_pulse,
+            "min_pulse": self.min_pulse if min_pulse is None else min_pulse,
+        }
+        self._check_calibration(vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"])
+        if not check_only:
+            self.max_pulse, self.zero_pulse, self.min_pulse = vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"]
+            self.neutral_pulse = int(self.zero_pulse)
+        return {k: int(v) for k, v in vals.items()}
 
     def map_throttle(self, throttle: float | None) -> int:
         """Donkeycar's throttle mapping (clamped; ``None``/NaN → stopped)."""

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..actuators import donkeycar_map_range
 from .auth import WebConfigError
 
 __all__ = ["STEERING_KEYS", "THROTTLE_KEYS", "CalibrationError", "apply_calibration", "current_calibration"]
@@ -63,24 +62,15 @@ def apply_calibration(steering: Any, throttle: Any, config: object) -> dict[str,
             which = "steering" if key in STEERING_KEYS else "throttle"
             raise CalibrationError(f"calibration: {key} needs the {which} part (WebController({which}=...))")
         target[known[key]] = _pulse(key, value)
+    try:  # both parts checked before either changes
+        if steer_new:
+            steering.calibrate(**steer_new, check_only=True)
+        if throttle_new:
+            throttle.calibrate(**throttle_new, check_only=True)
+    except ValueError as exc:
+        raise CalibrationError(f"calibration: {exc}") from None
     if steer_new:
-        left = steer_new.get("left_pulse", steering.left_pulse)
-        right = steer_new.get("right_pulse", steering.right_pulse)
-        if left == right:
-            raise CalibrationError(f"calibration: STEERING_LEFT_PWM and STEERING_RIGHT_PWM are both {left}")
+        steering.calibrate(**steer_new)
     if throttle_new:
-        vals = {a: throttle_new.get(a, getattr(throttle, a)) for a in THROTTLE_KEYS.values()}
-        if vals["zero_pulse"] in (vals["max_pulse"], vals["min_pulse"]):
-            raise CalibrationError(
-                f"calibration: THROTTLE_STOPPED_PWM ({vals['zero_pulse']}) must differ from THROTTLE_FORWARD_PWM "
-                f"({vals['max_pulse']}) and THROTTLE_REVERSE_PWM ({vals['min_pulse']})"
-            )
-    for attr, v in steer_new.items():
-        setattr(steering, attr, v)
-    if steer_new:
-        steering.neutral_pulse = donkeycar_map_range(0, -1, 1, steering.left_pulse, steering.right_pulse)
-    for attr, v in throttle_new.items():
-        setattr(throttle, attr, v)
-    if throttle_new:
-        throttle.neutral_pulse = int(throttle.zero_pulse)
+        throttle.calibrate(**throttle_new)
     return current_calibration(steering, throttle)

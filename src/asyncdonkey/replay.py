@@ -408,7 +408,7 @@ def replay(
     subclasses (missing tub, not a tub).
     """
     if speed is None:
-        from .testing import VirtualClockLoop
+        from .virtual_loop import VirtualClockLoop
 
         runner = asyncio.Runner(loop_factory=VirtualClockLoop)
     else:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .virtual_loop import (
+from ..virtual_loop import (
     VirtualClockDeadlock,
     VirtualClockError,
     VirtualClockLoop,

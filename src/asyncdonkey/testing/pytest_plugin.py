@@ -36,7 +36,7 @@ from typing import Any
 
 import pytest
 
-from .virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
+from ..virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
 
 FACTORY_NAME = "virtual_clock"
 _DEFAULT_NAME = "asyncio"

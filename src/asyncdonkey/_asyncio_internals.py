@@ -1,0 +1,199 @@
+"""Every CPython implementation detail the virtual clock relies on, in one place, checked at import.
+
+:class:`~asyncdonkey.virtual_loop.VirtualClockLoop` needs to see things asyncio and the threading modules keep
+private: the loop's timer heap (``_scheduled``), its ready queue (``_ready``), the fields of a timer handle, how
+``asyncio.wrap_future`` creates its future, how a ``ThreadPoolExecutor`` worker runs a job, and which frames a
+thread is in while it blocks on a lock. They have been stable from Python 3.8 to 3.13, but none is promised.
+Everything that touches them lives here, and :func:`problems` checks each one against the running Python:
+the virtual loop refuses to start (and ``tests/core/test_asyncio_internals.py`` fails) with a message naming
+what changed, rather than mis-timing silently.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import concurrent.futures.thread as _cf_thread
+import heapq
+import threading
+from asyncio import base_events, events, futures
+from collections.abc import Callable
+from types import CodeType, FrameType
+from typing import Any
+
+__all__ = [
+    "SeqTimerHandle",
+    "blocked_without_timeout",
+    "find_work_items",
+    "next_live_timer",
+    "problems",
+    "push_timer",
+    "ready_tasks",
+    "wrapped_concurrent_future",
+]
+
+# -- timers and the ready queue ------------------------------------------------------------------------------
+
+
+class SeqTimerHandle(events.TimerHandle):
+    """A timer handle ordered by (deadline, scheduling sequence), so timers with equal deadlines fire FIFO.
+
+    asyncio's heap compares handles with ``<``; ours never mixes with plain handles (every timer of the
+    virtual loop is made by its ``call_at``), so the comparison skips the type check.
+    """
+
+    __slots__ = ("_seq",)
+
+    def __init__(
+        self,
+        seq: int,
+        when: float,
+        callback: Callable[..., Any],
+        args: tuple[Any, ...],
+        loop: asyncio.AbstractEventLoop,
+        context: Any = None,
+    ) -> None:
+        super().__init__(when, callback, args, loop, context)
+        self._seq = seq
+
+    def __lt__(self, other: Any) -> bool:
+        a, b = self._when, other._when
+        return a < b or (a == b and self._seq < other._seq)
+
+    def __le__(self, other: Any) -> bool:
+        a, b = self._when, other._when
+        return a < b or (a == b and self._seq <= other._seq)
+
+
+def push_timer(loop: Any, timer: SeqTimerHandle) -> None:
+    """What ``BaseEventLoop.call_at`` does with a new timer: into the heap, marked as scheduled."""
+    if timer._source_traceback:
+        del timer._source_traceback[-1]
+    heapq.heappush(loop._scheduled, timer)
+    timer._scheduled = True
+
+
+def next_live_timer(loop: Any) -> float | None:
+    """The deadline of the earliest timer that is not cancelled (cancelled ones at the head are dropped, as
+    ``_run_once`` would), or ``None`` when no timer is left."""
+    scheduled = loop._scheduled
+    while scheduled and scheduled[0]._cancelled:
+        loop._timer_cancelled_count -= 1
+        heapq.heappop(scheduled)._scheduled = False
+    return scheduled[0]._when if scheduled else None
+
+
+def has_ready(loop: Any) -> bool:
+    """Whether a callback is queued to run (a thread's ``call_soon_threadsafe`` may add one at any time)."""
+    return bool(loop._ready)
+
+
+def ready_tasks(loop: Any) -> list[asyncio.Task[Any]]:
+    """The tasks whose next step is queued in the ready queue (the tasks that keep the loop busy)."""
+    tasks = []
+    for handle in list(loop._ready):
+        owner = getattr(getattr(handle, "_callback", None), "__self__", None)
+        if isinstance(owner, asyncio.Task) and owner not in tasks:
+            tasks.append(owner)
+    return tasks
+
+
+# -- executor futures and the threads that run them -----------------------------------------------------------
+
+_WRAP_FUTURE: CodeType = futures.wrap_future.__code__
+_WORK_ITEM_RUN: CodeType = _cf_thread._WorkItem.run.__code__
+_POOL_WORKER: CodeType = _cf_thread._worker.__code__
+_CONDITION_WAIT: CodeType = threading.Condition.wait.__code__
+_THREAD_JOIN: CodeType = threading.Thread.join.__code__
+_TSTATE_LOCK_WAIT: CodeType | None = getattr(getattr(threading.Thread, "_wait_for_tstate_lock", None), "__code__", None)
+
+
+def wrapped_concurrent_future(caller: FrameType) -> concurrent.futures.Future[Any] | None:
+    """If ``caller`` (the frame that called ``loop.create_future``) is ``asyncio.wrap_future``, the
+    ``concurrent.futures.Future`` it is wrapping: that is how executor work reaches the loop, through
+    ``run_in_executor`` or directly (``asyncio.wrap_future(pool.submit(...))``)."""
+    if caller.f_code is not _WRAP_FUTURE:
+        return None
+    source = caller.f_locals.get("future")
+    return source if isinstance(source, concurrent.futures.Future) else None
+
+
+def find_work_items(frames: dict[int, FrameType]) -> dict[int, tuple[concurrent.futures.Future[Any], Any]]:
+    """For each thread (by ident) that is running a ``ThreadPoolExecutor`` job: the job's future and function."""
+    found = {}
+    for ident, frame in frames.items():
+        f: FrameType | None = frame
+        while f is not None:
+            if f.f_code is _WORK_ITEM_RUN:
+                item = f.f_locals.get("self")
+                if item is not None:
+                    found[ident] = (item.future, item.fn)
+                break
+            f = f.f_back
+    return found
+
+
+def idle_pool_worker(frame: FrameType) -> bool:
+    """Whether a thread's innermost frame is a ``ThreadPoolExecutor`` worker waiting for its next job."""
+    return frame.f_code is _POOL_WORKER
+
+
+def blocked_without_timeout(frame: FrameType) -> bool:
+    """Whether a thread's innermost frame is a wait that only another thread (or the loop) can end: a
+    ``threading.Condition.wait()`` without timeout (what ``Event.wait``, ``Queue.get``, ``Semaphore.acquire``,
+    ``Barrier.wait`` and ``concurrent.futures.Future.result`` block in) or a ``Thread.join()`` without timeout.
+
+    A wait *with* a timeout (``Event.wait(0.5)``, a ``threading.Timer``) ends by itself: that thread is busy
+    as far as the clock is concerned, like one in ``time.sleep``.
+    """
+    code = frame.f_code
+    if code is _CONDITION_WAIT or code is _THREAD_JOIN:
+        return frame.f_locals.get("timeout", 0) is None
+    if code is _TSTATE_LOCK_WAIT:  # Thread.join() before Python 3.13
+        local = frame.f_locals
+        return bool(local.get("block", False)) and local.get("timeout", 0) == -1
+    return False
+
+
+# -- the checks ---------------------------------------------------------------------------------------------
+
+
+def problems() -> list[str]:
+    """What this module relies on and this Python no longer provides; empty when all is well."""
+    found: list[str] = []
+    loop = asyncio.SelectorEventLoop()
+    try:
+        for name, kind in (("_scheduled", list), ("_timer_cancelled_count", int), ("_clock_resolution", float)):
+            if not isinstance(getattr(loop, name, None), kind):
+                found.append(f"asyncio event loops have no {kind.__name__} {name}")
+        if not hasattr(getattr(loop, "_ready", None), "popleft"):
+            found.append("asyncio event loops have no deque _ready")
+        for name in ("_check_closed", "_check_thread", "_check_callback", "_make_subprocess_transport", "_selector"):
+            if not hasattr(loop, name):
+                found.append(f"asyncio selector event loops have no {name}")
+        handle = SeqTimerHandle(0, 1.0, print, (), loop)
+        for name in ("_when", "_cancelled", "_scheduled", "_callback", "_source_traceback"):
+            if not hasattr(handle, name):
+                found.append(f"asyncio.TimerHandle has no {name}")
+    finally:
+        loop.close()
+    run_once = getattr(base_events.BaseEventLoop, "_run_once", None)
+    names = run_once.__code__.co_names if run_once is not None else ()
+    for name in ("_scheduled", "_ready", "_selector", "select", "_timer_cancelled_count"):
+        if name not in names:
+            found.append(f"BaseEventLoop._run_once no longer uses {name}")
+    wrap = _WRAP_FUTURE
+    if "create_future" not in wrap.co_names or "future" not in wrap.co_varnames:
+        found.append("asyncio.wrap_future no longer calls loop.create_future() with a local named 'future'")
+    run = _WORK_ITEM_RUN
+    if not {"future", "fn"} <= set(run.co_names) or run.co_varnames[:1] != ("self",):
+        found.append("concurrent.futures.thread._WorkItem.run no longer runs self.fn for self.future")
+    if "work_queue" not in _POOL_WORKER.co_varnames:
+        found.append("concurrent.futures.thread._worker no longer waits on a work_queue")
+    if _CONDITION_WAIT.co_varnames[:2] != ("self", "timeout"):
+        found.append("threading.Condition.wait no longer takes (self, timeout)")
+    if _THREAD_JOIN.co_varnames[:2] != ("self", "timeout"):
+        found.append("threading.Thread.join no longer takes (self, timeout)")
+    if _TSTATE_LOCK_WAIT is not None and _TSTATE_LOCK_WAIT.co_varnames[:3] != ("self", "block", "timeout"):
+        found.append("threading.Thread._wait_for_tstate_lock no longer takes (self, block, timeout)")
+    return found

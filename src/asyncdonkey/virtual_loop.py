@@ -1,51 +1,79 @@
 """An asyncio event loop on virtual time: hours of driving in a second, the same result every run.
 
-Semantics follow Trio's ``MockClock`` with autojump (DESIGN.md §4): time moves only when nothing is runnable,
-and then straight to the next timer's deadline, exactly, never backwards. A part that awaits
-``asyncio.sleep(0.08)`` costs exactly 80 ms of loop time.
+Tests run on it, and so does ``asyncdonkey replay``, which plays a recording through a pilot at the recorded
+times as fast as the CPU allows. Semantics follow Trio's ``MockClock`` with autojump: time moves only when
+nothing is runnable, and then straight to the next timer's deadline, exactly, never backwards. A part that
+awaits ``asyncio.sleep(0.08)`` costs exactly 80 ms of loop time.
 
 How it works, and why this way:
 
 * The loop is a plain :class:`asyncio.SelectorEventLoop` whose :meth:`time` returns a stored float. asyncio
-  only blocks in ``selector.select(timeout)`` when its ready queue is empty, so "every task is blocked" is
-  exactly "select was called with a timeout > 0". Our selector first polls real I/O with a zero timeout
-  (a pty, a pipe, or a thread's ``call_soon_threadsafe`` wake-up may be waiting); if nothing is there it
-  sets virtual time to the earliest live timer's deadline in a single step. Tools that patch the selector
-  instead (looptime) spend dozens of no-op loop cycles per jump.
-* **Executors.** Futures from ``run_in_executor`` (and so ``asyncio.to_thread``) are tracked. While any is
-  pending, the selector waits in *real* time and virtual time stands still: a thread doing 50 ms of real work
-  costs 0 virtual time, and a 1 s sleeper beside it still wakes at exactly +1 s. A pending call that makes no
-  progress for ``stall_timeout_s`` of real time raises :class:`VirtualClockStall` naming it (a long-lived
-  blocking loop such as a Donkeycar ``update()`` must run in its own thread, not in the executor).
-  A part with a worker thread of its own (the tub writer) registers ``hold_time_while(busy)``: while
-  ``busy()`` is true, time stands still in the same way, so its work also costs 0 virtual time.
-* **Deadlock.** Nothing ready, no timer, no executor work and no I/O within ``deadlock_grace_s`` of real time
-  means the program can never finish: :class:`VirtualClockDeadlock` is raised with the waiting tasks listed,
-  instead of hanging the test run.
+  only blocks in ``selector.select(timeout)`` when its ready queue is empty, so "every task is waiting" is
+  exactly "select was called with a timeout > 0". There, if no real I/O is waiting, we set virtual time to
+  the earliest live timer's deadline in one step. (Tools that patch the selector's timeout instead spend
+  dozens of no-op loop cycles per jump.)
+* **Real work holds time still.** Virtual time must not run ahead of work that is really being done for the
+  program, or a 1 s sleeper beside a 50 ms thread wakes first. So time stands still, and the loop waits in
+  real time, while any of these is busy: executor work (``run_in_executor``, ``asyncio.to_thread``, and any
+  ``asyncio.wrap_future`` of a ``concurrent.futures`` future, such as ``pool.submit(...)``); a non-daemon
+  thread started after the loop was created; a subprocess started through the loop, until it exits; a
+  ``hold_time_while(busy, name)`` hold (the tub writer's disk thread); the default executor's shutdown.
+  Real work costs 0 virtual time. If holds last ``stall_timeout_s`` of real time, :class:`VirtualClockStall`
+  names them.
+* **Waiting is not working.** A thread blocked without a timeout in ``threading.Condition.wait`` (so in
+  ``Event.wait()``, ``Queue.get()``, ``Future.result()``, ``run_coroutine_threadsafe(...).result()``, ...) or
+  in ``Thread.join()`` can only be released by someone else, usually a task on this loop: it does not hold
+  time, or the task that would release it could never run. A ``ThreadPoolExecutor`` worker waiting for its
+  next job does not hold time either. (Telling these apart reads the threads' Python frames: see
+  :mod:`asyncdonkey._asyncio_internals`.)
+* **Autojump threshold.** Daemon threads (a Donkeycar part's ``update()`` loop, a camera reader) and file
+  descriptors registered with the loop (sockets, pipes, ptys) may answer at any moment, or never: they do not
+  hold time, but while any is present the loop waits ``autojump_threshold`` of real time for them before each
+  jump, so an answer already on its way arrives before time moves. With none present (the pure-virtual case)
+  time jumps at once, which keeps a 10,000-tick drive to a few tenths of a second.
+* **Failures are named, once.** Nothing ready, no timer and nothing holding time means the program can never
+  finish: :class:`VirtualClockDeadlock` lists the waiting tasks and the blocked threads, after waiting
+  ``deadlock_grace_s`` of real time for outside I/O. A jump past ``budget_s`` of virtual time raises
+  :class:`VirtualClockBudgetExceeded` naming the waiting tasks, instead of running away for hours of
+  virtual time. Tasks that only ever yield (``while True: await asyncio.sleep(0)``) freeze virtual time:
+  after ``livelock_s`` of real time (or ``livelock_iterations`` loop iterations) with no time moving and no
+  outside work, :class:`VirtualClockLivelock` names them. After a first error the loop stops holding time
+  for threads, so closing it neither waits again nor raises a second error that would hide the first.
 * **Order.** Timers with equal deadlines fire in the order they were scheduled (a FIFO sequence number breaks
   ties), so two runs of the same program interleave identically.
 * **Teardown.** ``shutdown_default_executor`` (called by ``asyncio.run``/``Runner`` with a 300 s timeout on
-  Python 3.12+) counts as pending real work, so closing the loop neither jumps 300 s nor warns.
+  Python 3.12+) holds time, so closing the loop neither jumps 300 s nor warns.
 
-uvloop keeps its clock and timers inside libuv and cannot be virtualised: :func:`virtual_loop_factory` refuses
-it loudly. Production runs on uvloop, tests on this loop, and the runtime reads time from whichever loop it is
-on (:func:`asyncdonkey.clock.get_clock`).
+Threads and executors started *before* the loop was created are not watched (they cannot be working for it).
+uvloop keeps its clock and timers inside libuv and cannot be virtualised: :func:`virtual_loop_factory`
+refuses it loudly. Production runs on uvloop, tests and replays on this loop, and the runtime reads time from
+whichever loop it is on (:func:`asyncdonkey.clock.get_clock`, through ``loop.is_virtual_clock``).
 """
 
 from __future__ import annotations
 
 import asyncio
-import heapq
+import concurrent.futures
+import functools
 import itertools
+import math
+import queue
 import selectors
+import sys
+import threading
 import time
-from asyncio import events
+import weakref
+from asyncio import futures
 from collections.abc import Callable
 from typing import Any
 
+from . import _asyncio_internals as _internals
+
 __all__ = [
+    "VirtualClockBudgetExceeded",
     "VirtualClockDeadlock",
     "VirtualClockError",
+    "VirtualClockLivelock",
     "VirtualClockLoop",
     "VirtualClockStall",
     "virtual_loop_factory",
@@ -57,89 +85,178 @@ class VirtualClockError(RuntimeError):
 
 
 class VirtualClockDeadlock(VirtualClockError):
-    """No task can ever run again: nothing ready, no timers, no executor work, no I/O."""
+    """No task can ever run again: nothing ready, no timers, nothing holding time, no outside I/O."""
 
 
 class VirtualClockStall(VirtualClockError):
-    """Executor work kept virtual time frozen for longer than ``stall_timeout_s`` of real time."""
+    """Real work (executor calls, threads, subprocesses, holds) kept virtual time frozen for longer than
+    ``stall_timeout_s`` of real time."""
 
 
-class _SeqTimerHandle(events.TimerHandle):
-    """A timer handle ordered by (deadline, scheduling sequence) so equal deadlines fire FIFO."""
+class VirtualClockBudgetExceeded(VirtualClockError):
+    """Virtual time would pass the loop's ``budget_s``: the program is waiting for something that does not come
+    while timers keep firing."""
 
-    __slots__ = ("_seq",)
 
-    def __init__(
-        self,
-        seq: int,
-        when: float,
-        callback: Callable[..., Any],
-        args: tuple[Any, ...],
-        loop: asyncio.AbstractEventLoop,
-        context: Any = None,
-    ) -> None:
-        super().__init__(when, callback, args, loop, context)
-        self._seq = seq
+class VirtualClockLivelock(VirtualClockError):
+    """Tasks kept the loop busy without letting virtual time move and without any outside work."""
 
-    def __lt__(self, other: object) -> bool:
-        if isinstance(other, _SeqTimerHandle):
-            return (self._when, self._seq) < (other._when, other._seq)
-        return super().__lt__(other)
 
-    def __le__(self, other: object) -> bool:
-        if isinstance(other, _SeqTimerHandle):
-            return (self._when, self._seq) <= (other._when, other._seq)
-        return super().__le__(other)
+_WRAP_FUTURE_CODE = _internals._WRAP_FUTURE
+_POLL_EVERY = 64  # a busy loop polls real I/O once in this many iterations
+_LIVELOCK_CHECK_EVERY = 4096  # iterations between livelock checks (a power of two)
+_RESCAN_EVERY = 64  # idle iterations between full thread censuses while the cached one says "quiet"
+
+
+#: modules whose frames say nothing about what a thread is doing (the caller of their wait does)
+_LIBRARY_FILES = frozenset(m.__file__ for m in (threading, concurrent.futures.thread, concurrent.futures._base, queue))
+
+
+class _Job:
+    """Executor work the loop is waiting for: the concurrent future behind an asyncio future."""
+
+    __slots__ = ("cf", "name")
+
+    def __init__(self, cf: concurrent.futures.Future[Any], name: str) -> None:
+        self.cf = cf
+        self.name = name
+
+
+class _Census:
+    """What the threads started since the loop was created are doing, as far as the clock is concerned."""
+
+    __slots__ = ("blocked", "holding", "live")
+
+    def __init__(self) -> None:
+        self.holding: list[str] = []  # working non-daemon threads and executor workers: time waits for them
+        self.live: list[str] = []  # working daemon threads: time waits autojump_threshold for them
+        self.blocked: list[str] = []  # waiting, without timeout, for someone else to release them
+
+
+_QUIET = _Census()
 
 
 class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
-    """The platform selector, with ``select`` routed through the loop's virtual-time policy."""
+    """The platform selector, with ``select`` routed through the loop's virtual-time policy and a count of the
+    registered file descriptors (one is the loop's own wake-up pipe)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.policy: Callable[[Callable[[float | None], list[Any]], float | None], list[Any]] | None = None
+        self.n_fds = 0
+
+    def register(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
+        key = super().register(fileobj, events, data)
+        self.n_fds += 1
+        return key
+
+    def unregister(self, fileobj: Any) -> selectors.SelectorKey:
+        key = super().unregister(fileobj)
+        self.n_fds -= 1
+        return key
 
     def select(self, timeout: float | None = None) -> list[Any]:
-        real = super().select
         if self.policy is None:
-            return real(timeout)
-        return self.policy(real, timeout)
+            return super().select(timeout)
+        return self.policy(super().select, timeout)
 
 
 class VirtualClockLoop(asyncio.SelectorEventLoop):
-    """A selector event loop whose :meth:`time` is virtual and jumps to the next timer when all are blocked.
+    """A selector event loop whose :meth:`time` is virtual and jumps to the next timer when all tasks wait.
 
-    Use it as ``asyncio.Runner(loop_factory=VirtualClockLoop)`` or, in pytest, with
-    ``@pytest.mark.asyncio`` plus ``@pytest.mark.virtual_clock``.
+    Use it as ``asyncio.Runner(loop_factory=VirtualClockLoop)`` or, in pytest, with ``@pytest.mark.asyncio``
+    plus ``@pytest.mark.virtual_clock(**these_arguments)``.
 
     Args:
         start: the virtual time the loop starts at (seconds).
+        autojump_threshold: real seconds the loop waits before a jump while a daemon thread or an outside file
+            descriptor is present, so that an answer on its way arrives first. Without either, time jumps at
+            once. ``0`` always jumps at once; a larger value lets slower outside peers keep up.
+        budget_s: virtual seconds the loop may run (from ``start``); a jump beyond raises
+            :class:`VirtualClockBudgetExceeded`. ``None``: no limit.
         deadlock_grace_s: real seconds to wait for outside I/O before declaring a deadlock.
-        stall_timeout_s: real seconds pending executor work may hold virtual time before
-            :class:`VirtualClockStall` is raised.
+        stall_timeout_s: real seconds real work may hold virtual time before :class:`VirtualClockStall`.
+        livelock_s: real seconds of busy iterations without time moving and without outside work before
+            :class:`VirtualClockLivelock`. ``None``: never.
+        livelock_iterations: the same limit counted in loop iterations (checked every 4,096). ``None``: none.
     """
 
     #: read by :func:`asyncdonkey.clock.get_clock` to take time from the loop itself
     is_virtual_clock = True
 
-    def __init__(self, *, start: float = 0.0, deadlock_grace_s: float = 1.0, stall_timeout_s: float = 60.0) -> None:
+    def __init__(
+        self,
+        *,
+        start: float = 0.0,
+        autojump_threshold: float = 0.002,
+        budget_s: float | None = None,
+        deadlock_grace_s: float = 1.0,
+        stall_timeout_s: float = 60.0,
+        livelock_s: float | None = 5.0,
+        livelock_iterations: int | None = None,
+    ) -> None:
+        broken = _internals_problems()
+        if broken:
+            raise VirtualClockError(
+                f"VirtualClockLoop cannot run on Python {sys.version.split()[0]}: asyncio or threading changed in "
+                f"ways it relies on: {'; '.join(broken)}"
+            )
+        if autojump_threshold < 0:
+            raise ValueError(f"autojump_threshold must be >= 0 real seconds, got {autojump_threshold!r}")
         selector = _VirtualSelector()
         super().__init__(selector)
         self._virtual_time = float(start)
+        self._start = float(start)
+        self._budget_end = math.inf
+        self.budget_s = budget_s
+        self.autojump_threshold = float(autojump_threshold)
+        self.deadlock_grace_s = deadlock_grace_s
+        self.stall_timeout_s = stall_timeout_s
+        self.livelock_s = livelock_s
+        self.livelock_iterations = livelock_iterations
+        #: how many times virtual time jumped forward (a measure of how many "sleeps" the run had)
+        self.jumps = 0
         self._timer_seq = itertools.count()
-        self._pending_executor: dict[asyncio.Future[Any], str] = {}
+        self._jobs: dict[asyncio.Future[Any], _Job] = {}
+        self._abandoned: list[_Job] = []
         self._external_pending = 0
         self._holds: dict[int, tuple[str, Callable[[], bool]]] = {}
         self._hold_ids = itertools.count()
-        self.deadlock_grace_s = deadlock_grace_s
-        self.stall_timeout_s = stall_timeout_s
-        #: how many times virtual time jumped forward (a measure of how many "sleeps" the run had)
-        self.jumps = 0
+        self._procs: list[tuple[Any, str]] = []
+        self._threads_before: weakref.WeakSet[threading.Thread] = weakref.WeakSet(threading.enumerate())
+        self._quiet_threads = -1  # threading.active_count() when the last census found nothing to watch
+        self._rescan = 0
+        self._own_fds = selector.n_fds  # the wake-up pipe
+        self._busy = 0
+        self._spin_since: float | None = None
+        self._failure: VirtualClockError | None = None
         selector.policy = self._select
 
     # -- time ---------------------------------------------------------------------------------------------
     def time(self) -> float:
         return self._virtual_time
+
+    @property
+    def budget_s(self) -> float | None:
+        """Virtual seconds this loop may run from its start (``None``: no limit); may be changed at any time."""
+        return None if self._budget_end == math.inf else self._budget_end - self._start
+
+    @budget_s.setter
+    def budget_s(self, value: float | None) -> None:
+        if value is not None and not value > 0:
+            raise ValueError(f"budget_s must be a positive number of virtual seconds or None, got {value!r}")
+        self._budget_end = math.inf if value is None else self._start + float(value)
+
+    def jump(self, seconds: float) -> None:
+        """Move virtual time forward by ``seconds`` now (from the loop's thread). Timers that fall due fire on
+        the next loop iteration, in deadline order; use it to skip a stretch in which nothing should happen."""
+        if not seconds >= 0:
+            raise ValueError(f"jump() moves time forward: seconds must be >= 0, got {seconds!r}")
+        target = self._virtual_time + seconds
+        if target > self._budget_end:
+            raise self._fail(VirtualClockBudgetExceeded(self._budget_message(target, "jump()")))
+        self._virtual_time = target
+        self.jumps += 1
 
     def call_at(self, when: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
         if when is None:
@@ -148,34 +265,58 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         if self._debug:
             self._check_thread()
             self._check_callback(callback, "call_at")
-        timer = _SeqTimerHandle(next(self._timer_seq), when, callback, args, self, context)
-        if timer._source_traceback:
-            del timer._source_traceback[-1]
-        heapq.heappush(self._scheduled, timer)
-        timer._scheduled = True
+        timer = _internals.SeqTimerHandle(next(self._timer_seq), when, callback, args, self, context)
+        _internals.push_timer(self, timer)
         return timer
 
     # -- executor tracking ---------------------------------------------------------------------------------
-    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
-        fut = super().run_in_executor(executor, func, *args)
-        self._pending_executor[fut] = getattr(func, "__qualname__", repr(func))
-        fut.add_done_callback(self._executor_done)
+    def create_future(self) -> asyncio.Future[Any]:
+        fut: asyncio.Future[Any] = futures.Future(loop=self)
+        caller = sys._getframe(1)
+        if caller.f_code is _WRAP_FUTURE_CODE:  # asyncio.wrap_future: executor work is on its way
+            cf = _internals.wrapped_concurrent_future(caller)
+            if cf is not None:
+                self._jobs[fut] = _Job(cf, "a concurrent.futures job")
+                self._quiet_threads = -1
+                fut.add_done_callback(self._job_done)
         return fut
 
-    def _executor_done(self, fut: asyncio.Future[Any]) -> None:
-        self._pending_executor.pop(fut, None)
+    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        fut = super().run_in_executor(executor, func, *args)
+        job = self._jobs.get(fut)
+        if job is not None:
+            job.name = _callable_name(func)
+        return fut
+
+    def _job_done(self, fut: asyncio.Future[Any]) -> None:
+        job = self._jobs.pop(fut, None)
+        if job is not None and not job.cf.done():
+            self._abandoned.append(job)  # cancelled while its thread still runs: named if shutdown stalls
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
+        if self._failure is not None:
+            # An error was raised already: its threads may never finish, and waiting for them would only
+            # replace that error with a second one. Let them go, as a timed-out shutdown would.
+            executor = getattr(self, "_default_executor", None)
+            if executor is not None:
+                executor.shutdown(wait=False)
+            return
         self._external_pending += 1
         try:
             await super().shutdown_default_executor(*args, **kwargs)
         finally:
             self._external_pending -= 1
 
+    async def _make_subprocess_transport(self, protocol: Any, args: Any, *rest: Any, **kwargs: Any) -> Any:
+        transport = await super()._make_subprocess_transport(protocol, args, *rest, **kwargs)
+        argv = [args] if isinstance(args, (str, bytes)) else list(args)
+        self._procs.append((transport, f"subprocess {transport.get_pid()} ({' '.join(map(str, argv))[:60]})"))
+        return transport
+
     @property
     def pending_executor_calls(self) -> list[str]:
         """Names of the functions whose executor calls are still running (virtual time waits for them)."""
-        return list(self._pending_executor.values())
+        return [job.name for job in self._jobs.values()]
 
     def hold_time_while(self, busy: Callable[[], bool], name: str) -> Callable[[], None]:
         """Keep virtual time still while ``busy()`` returns true; returns a function that removes the hold.
@@ -184,70 +325,251 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         thread): like executor work, that work then takes no virtual time, so a simulated drive recorded on
         the virtual clock loses no records to a disk that is "infinitely slow" in virtual time. ``busy`` is
         called from the loop thread before each time jump and while waiting, so it must be cheap and
-        thread-safe (reading counters is). While held, the loop polls ``busy`` every millisecond of real time.
+        thread-safe (reading counters is). While held, the loop polls ``busy`` every millisecond or so.
         """
         key = next(self._hold_ids)
         self._holds[key] = (name, busy)
         return lambda: self._holds.pop(key, None) and None
 
-    def _held_by(self) -> list[str]:
-        return [name for name, busy in list(self._holds.values()) if busy()]
+    # -- what holds time, what may answer ------------------------------------------------------------------
+    def _census(self, force: bool = False) -> _Census:
+        """Classify the threads started since this loop was created (cached while none needs watching)."""
+        count = threading.active_count()
+        if not force and count == self._quiet_threads:
+            self._rescan += 1
+            if self._rescan < _RESCAN_EVERY:
+                return _QUIET
+        self._rescan = 0
+        me = threading.get_ident()
+        frames = sys._current_frames()
+        census = _Census()
+        jobs = _internals.find_work_items(frames)
+        for thread in threading.enumerate():
+            ident = thread.ident
+            if ident == me or thread in self._threads_before:
+                continue
+            frame = frames.get(ident) if ident is not None else None
+            if frame is not None:
+                if _internals.idle_pool_worker(frame):
+                    continue
+                if _internals.blocked_without_timeout(frame):
+                    census.blocked.append(_thread_name(thread, jobs.get(ident), frame))
+                    continue
+            name = _thread_name(thread, jobs.get(ident), frame)
+            if thread.daemon and ident not in jobs:
+                census.live.append(name)
+            else:
+                census.holding.append(name)
+        if not (census.holding or census.live or census.blocked):
+            self._quiet_threads = count
+            return _QUIET
+        self._quiet_threads = -1
+        return census
+
+    def _holders(self, census: _Census) -> list[str]:
+        """Everything that holds virtual time still right now, by name."""
+        if self._failure is not None:
+            return []
+        held = list(census.holding)
+        if self._jobs:
+            running = {id(cf) for cf, _fn in _internals.find_work_items(sys._current_frames()).values()}
+            for job in self._jobs.values():
+                if not job.cf.done() and id(job.cf) not in running:
+                    held.append(f"{job.name} (queued, or in another process)")
+        if self._procs:
+            self._procs = [(p, name) for p, name in self._procs if p.get_returncode() is None]
+            held += [name for _p, name in self._procs]
+        if self._holds:
+            held += [name for name, busy in list(self._holds.values()) if busy()]
+        if self._external_pending:
+            held.append("the default executor's shutdown")
+        return held
 
     # -- the jump ------------------------------------------------------------------------------------------
     def _select(self, real_select: Callable[[float | None], list[Any]], timeout: float | None) -> list[Any]:
-        events_ = real_select(0)
-        if events_ or timeout == 0:
+        if timeout == 0:  # callbacks are ready: a busy iteration, time does not move
+            n = self._busy = self._busy + 1
+            if n % _POLL_EVERY:
+                return []
+            events_ = real_select(0)
+            if events_:
+                self._busy = 0
+                self._spin_since = None
+            elif not n % _LIVELOCK_CHECK_EVERY:
+                self._check_livelock(n)
             return events_
-        if self._pending_executor or self._external_pending or (self._holds and self._held_by()):
-            return self._wait_for_real_work(real_select)
-        scheduled = self._scheduled
-        while scheduled and scheduled[0]._cancelled:
-            self._timer_cancelled_count -= 1
-            heapq.heappop(scheduled)._scheduled = False
-        if scheduled:
-            when = scheduled[0]._when
-            if when > self._virtual_time:
-                self._virtual_time = when
-                self.jumps += 1
-            return []
-        # No timers and nothing pending: only outside I/O could still wake us.
-        events_ = real_select(self.deadlock_grace_s)
+        self._busy = 0
+        self._spin_since = None
+        events_ = real_select(0)
         if events_:
             return events_
-        raise VirtualClockDeadlock(self._deadlock_message())
-
-    def _wait_for_real_work(self, real_select: Callable[[float | None], list[Any]]) -> list[Any]:
-        started = time.monotonic()
-        while True:
-            held = self._held_by() if self._holds else []
-            # executor futures wake the selector when done; holds are polled
-            events_ = real_select(0.001 if held else 0.25)
+        census = self._census()
+        if census is not _QUIET or self._jobs or self._procs or self._holds or self._external_pending:
+            held = self._holders(census)
+            if held:
+                return self._wait_while_held(real_select, held)
+        live = bool(census.live) or self._selector.n_fds > self._own_fds
+        when = _internals.next_live_timer(self)
+        if when is None:
+            return self._nothing_scheduled(real_select, census)
+        if live and self.autojump_threshold > 0:
+            events_ = real_select(self.autojump_threshold)
             if events_:
                 return events_
-            if not (self._pending_executor or self._external_pending or (self._holds and self._held_by())):
-                return events_
-            if time.monotonic() - started > self.stall_timeout_s:
-                calls = ", ".join(self.pending_executor_calls + self._held_by()) or "default executor shutdown"
-                raise VirtualClockStall(
-                    f"virtual time is frozen: executor work ({calls}) has not finished after "
-                    f"{self.stall_timeout_s:.0f} s of real time. A blocking loop that never returns (for "
-                    f"example a Donkeycar update()) must run in its own thread, not in run_in_executor."
-                )
+        if _internals.has_ready(self):  # a thread's call_soon_threadsafe arrived meanwhile
+            return []
+        if when > self._virtual_time:
+            if when > self._budget_end:
+                raise self._fail(VirtualClockBudgetExceeded(self._budget_message(when, "the next timer")))
+            self._virtual_time = when
+            self.jumps += 1
+        return []
 
-    def _deadlock_message(self) -> str:
-        waiting = []
-        for task in asyncio.all_tasks(self):
-            if not task.done():
-                coro = task.get_coro()
-                frame = getattr(coro, "cr_frame", None)
-                where = f" at {frame.f_code.co_filename}:{frame.f_lineno}" if frame is not None else ""
-                waiting.append(f"{task.get_name()} ({getattr(coro, '__qualname__', coro)}{where})")
-        listed = "; ".join(waiting) if waiting else "none"
-        return (
-            f"deadlock at virtual time {self._virtual_time:.6f} s: no callback is ready, no timer is "
-            f"scheduled, no executor work is pending and no I/O arrived within {self.deadlock_grace_s:g} s of "
-            f"real time, so nothing can ever run again. Waiting tasks: {listed}"
+    def _wait_while_held(self, real_select: Callable[[float | None], list[Any]], held: list[str]) -> list[Any]:
+        """Wait in real time while real work holds virtual time; stall after ``stall_timeout_s``."""
+        started = time.monotonic()
+        pause = 0.0005
+        while True:
+            events_ = real_select(pause)  # executor results and threads' call_soon_threadsafe wake us at once
+            if events_ or _internals.has_ready(self):
+                return events_
+            held = self._holders(self._census(force=True))
+            if not held:
+                return []
+            if time.monotonic() - started > self.stall_timeout_s:
+                raise self._fail(VirtualClockStall(self._stall_message(held)))
+            pause = min(pause * 2, 0.02)
+
+    def _nothing_scheduled(self, real_select: Callable[[float | None], list[Any]], census: _Census) -> list[Any]:
+        """No timer and nothing holding time: only outside I/O can still wake the loop."""
+        deadline = time.monotonic() + self.deadlock_grace_s
+        while True:
+            events_ = real_select(min(0.02, max(0.0, deadline - time.monotonic())))
+            if events_ or _internals.has_ready(self):
+                return events_
+            census = self._census(force=True)
+            if self._holders(census):
+                return []  # a thread went back to work: wait for it as usual
+            if time.monotonic() >= deadline:
+                raise self._fail(VirtualClockDeadlock(self._deadlock_message(census)))
+
+    def _check_livelock(self, iterations: int) -> None:
+        now = time.monotonic()
+        if self._spin_since is None:
+            self._spin_since = now
+            return
+        spun = now - self._spin_since
+        too_long = self.livelock_s is not None and spun >= self.livelock_s
+        too_many = self.livelock_iterations is not None and iterations >= self.livelock_iterations
+        if not (too_long or too_many):
+            return
+        census = self._census(force=True)
+        if self._holders(census) or census.live:
+            self._spin_since = now  # a task polling for outside work is not a livelock
+            return
+        tasks = "; ".join(_describe_task(t) for t in _internals.ready_tasks(self)) or "none found"
+        raise self._fail(
+            VirtualClockLivelock(
+                f"livelock at virtual time {self._virtual_time:.6f} s: for {iterations:,} loop iterations "
+                f"({spun + 0.0:.1f} s of real time) tasks kept the loop busy without letting virtual time move, "
+                f"while no thread, subprocess or file descriptor was working. A task that only ever yields "
+                f"(while True: await asyncio.sleep(0)) freezes virtual time forever; await an event or a real "
+                f"delay instead. Busy tasks: {tasks}"
+            )
         )
+
+    # -- errors --------------------------------------------------------------------------------------------
+    def _fail(self, error: VirtualClockError) -> VirtualClockError:
+        """Record the loop's first error; a later one says it came after it (and is usually its echo)."""
+        if self._failure is None:
+            self._failure = error
+        elif error is not self._failure:
+            error.args = (f"{error.args[0]} (after an earlier {type(self._failure).__name__}: {self._failure})",)
+        return error
+
+    def _waiting_tasks(self) -> str:
+        waiting = [_describe_task(task) for task in asyncio.all_tasks(self) if not task.done()]
+        return "; ".join(waiting) if waiting else "none"
+
+    def _deadlock_message(self, census: _Census) -> str:
+        outside = []
+        if census.blocked:
+            outside.append(f"threads blocked waiting to be released: {', '.join(census.blocked)}")
+        if census.live:
+            outside.append(f"daemon threads that did not call the loop: {', '.join(census.live)}")
+        n_fds = self._selector.n_fds - self._own_fds
+        if n_fds:
+            outside.append(f"{n_fds} file descriptor(s) registered with the loop stayed silent")
+        return (
+            f"deadlock at virtual time {self._virtual_time:.6f} s: no callback is ready, no timer is scheduled, "
+            f"nothing holds time (executor work, threads, subprocesses) and no I/O arrived within "
+            f"{self.deadlock_grace_s:g} s of real time, so nothing can ever run again. "
+            f"Waiting tasks: {self._waiting_tasks()}" + "".join(f". Also {o}" for o in outside)
+        )
+
+    def _stall_message(self, held: list[str]) -> str:
+        if held == ["the default executor's shutdown"]:
+            running = [f"{_callable_name(fn)} in {t}" for t, (_cf, fn) in self._executor_threads().items()]
+            if running:
+                held = [f"the default executor's shutdown, waiting for {', '.join(running)}"]
+        return (
+            f"virtual time is frozen at {self._virtual_time:.6f} s: real work has not finished after "
+            f"{self.stall_timeout_s:g} s of real time: {', '.join(held)}. Time stands still while executor "
+            f"calls, non-daemon threads, subprocesses and hold_time_while() holds are busy; a loop that never "
+            f"returns (for example a Donkeycar update()) must run in a daemon thread, and a thread that polls "
+            f"with time.sleep() for something a task does looks busy (wait on an Event instead). "
+            f"Waiting tasks: {self._waiting_tasks()}"
+        )
+
+    def _executor_threads(self) -> dict[str, tuple[Any, Any]]:
+        names = {t.ident: t.name for t in threading.enumerate()}
+        items = _internals.find_work_items(sys._current_frames())
+        return {names.get(ident, str(ident)): item for ident, item in items.items()}
+
+    def _budget_message(self, when: float, what: str) -> str:
+        return (
+            f"virtual time budget exhausted: {what} would take virtual time to {when:.6f} s, past the budget of "
+            f"{self.budget_s:g} s (from {self._start:g} s) after {self.jumps:,} jumps. The program is probably "
+            f"waiting for something that never comes while timers keep firing; raise budget_s if it really "
+            f"needs that long. Waiting tasks: {self._waiting_tasks()}"
+        )
+
+
+@functools.lru_cache(maxsize=1)
+def _internals_problems() -> tuple[str, ...]:
+    return tuple(_internals.problems())
+
+
+def _callable_name(func: Any) -> str:
+    """``Event.wait`` for a bound method, the wrapped function for ``asyncio.to_thread``'s partial."""
+    while isinstance(func, functools.partial):
+        if getattr(func.func, "__qualname__", "") == "Context.run" and func.args:
+            func = func.args[0]
+        else:
+            func = func.func
+    return getattr(func, "__qualname__", None) or repr(func)
+
+
+def _thread_name(thread: threading.Thread, job: tuple[Any, Any] | None, frame: Any) -> str:
+    what = f"running {_callable_name(job[1])}" if job is not None else ""
+    while frame is not None and frame.f_code.co_filename in _LIBRARY_FILES:
+        frame = frame.f_back  # name the caller of Event.wait(), not threading.py
+    where = f"at {frame.f_code.co_filename}:{frame.f_lineno}" if frame is not None else ""
+    detail = ", ".join(x for x in (what, where) if x)
+    return f"thread {thread.name!r}" + (f" ({detail})" if detail else "")
+
+
+def _describe_task(task: asyncio.Task[Any]) -> str:
+    """``name (coroutine at file:line)``, at the innermost coroutine the task is suspended in."""
+    coro: Any = task.get_coro()
+    name = getattr(coro, "__qualname__", repr(coro))
+    frame = getattr(coro, "cr_frame", None)
+    inner = getattr(coro, "cr_await", None)
+    while inner is not None and getattr(inner, "cr_frame", None) is not None:
+        frame = inner.cr_frame
+        inner = getattr(inner, "cr_await", None)
+    where = f" at {frame.f_code.co_filename}:{frame.f_lineno}" if frame is not None else ""
+    return f"{task.get_name()} ({name}{where})"
 
 
 def virtual_loop_factory(backend: str = "asyncio", **kwargs: Any) -> Callable[[], VirtualClockLoop]:

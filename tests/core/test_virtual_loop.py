@@ -126,14 +126,34 @@ def test_outside_io_within_grace_is_not_a_deadlock():
 def test_stalled_executor_work_is_reported():
     release = threading.Event()
 
+    def busy_until_released():
+        while not release.is_set():
+            time.sleep(0.005)  # looks like work: the loop cannot tell it will never finish
+
     async def main():
         try:
-            await asyncio.get_running_loop().run_in_executor(None, release.wait)
+            await asyncio.get_running_loop().run_in_executor(None, busy_until_released)
         finally:
             release.set()
 
-    with pytest.raises(VirtualClockStall, match=r"executor work \(Event.wait\) has not finished"):
-        run_virtual(main, stall_timeout_s=0.3)
+    try:
+        with pytest.raises(VirtualClockStall, match=r"has not finished after 0.3 s of real time: thread 'asyncio_0'"):
+            run_virtual(main, stall_timeout_s=0.3)
+    finally:
+        release.set()
+
+
+def test_executor_work_blocked_on_an_event_nobody_sets_is_a_deadlock():
+    release = threading.Event()
+
+    async def main():
+        await asyncio.get_running_loop().run_in_executor(None, release.wait)
+
+    try:
+        with pytest.raises(VirtualClockDeadlock, match=r"blocked waiting to be released: thread 'asyncio_0' \(running Event.wait"):
+            run_virtual(main, deadlock_grace_s=0.05)
+    finally:
+        release.set()
 
 
 def test_equal_deadlines_fire_in_scheduling_order():

@@ -22,8 +22,10 @@ import importlib
 from typing import Any
 
 from ..virtual_loop import (
+    VirtualClockBudgetExceeded,
     VirtualClockDeadlock,
     VirtualClockError,
+    VirtualClockLivelock,
     VirtualClockLoop,
     VirtualClockStall,
     virtual_loop_factory,
@@ -56,8 +58,10 @@ _LAZY = {
 _WHERE = {name: module for module, names in _LAZY.items() for name in names}
 
 __all__ = [
+    "VirtualClockBudgetExceeded",
     "VirtualClockDeadlock",
     "VirtualClockError",
+    "VirtualClockLivelock",
     "VirtualClockLoop",
     "VirtualClockStall",
     "virtual_loop_factory",

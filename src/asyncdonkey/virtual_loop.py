@@ -195,16 +195,19 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         livelock_s: float | None = 5.0,
         livelock_iterations: int | None = None,
     ) -> None:
+        selector = _VirtualSelector()
+        super().__init__(selector)
         broken = _internals_problems()
         if broken:
+            self.close()
             raise VirtualClockError(
                 f"VirtualClockLoop cannot run on Python {sys.version.split()[0]}: asyncio or threading changed in "
                 f"ways it relies on: {'; '.join(broken)}"
             )
-        if autojump_threshold < 0:
+        if not autojump_threshold >= 0 or (budget_s is not None and not budget_s > 0):
+            self.close()
+            _check_budget(budget_s)
             raise ValueError(f"autojump_threshold must be >= 0 real seconds, got {autojump_threshold!r}")
-        selector = _VirtualSelector()
-        super().__init__(selector)
         self._virtual_time = float(start)
         self._start = float(start)
         self._budget_end = math.inf
@@ -243,8 +246,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
 
     @budget_s.setter
     def budget_s(self, value: float | None) -> None:
-        if value is not None and not value > 0:
-            raise ValueError(f"budget_s must be a positive number of virtual seconds or None, got {value!r}")
+        _check_budget(value)
         self._budget_end = math.inf if value is None else self._start + float(value)
 
     def jump(self, seconds: float) -> None:
@@ -535,6 +537,11 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         )
 
 
+def _check_budget(value: float | None) -> None:
+    if value is not None and not value > 0:
+        raise ValueError(f"budget_s must be a positive number of virtual seconds or None, got {value!r}")
+
+
 @functools.lru_cache(maxsize=1)
 def _internals_problems() -> tuple[str, ...]:
     return tuple(_internals.problems())
@@ -560,16 +567,25 @@ def _thread_name(thread: threading.Thread, job: tuple[Any, Any] | None, frame: A
 
 
 def _describe_task(task: asyncio.Task[Any]) -> str:
-    """``name (coroutine at file:line)``, at the innermost coroutine the task is suspended in."""
+    """``name (coroutine at file:line, awaiting Event.wait)``: where the task's own code is suspended (the
+    innermost frame outside asyncio) and, if different, the innermost coroutine it waits in."""
     coro: Any = task.get_coro()
     name = getattr(coro, "__qualname__", repr(coro))
     frame = getattr(coro, "cr_frame", None)
+    innermost = coro
     inner = getattr(coro, "cr_await", None)
     while inner is not None and getattr(inner, "cr_frame", None) is not None:
-        frame = inner.cr_frame
+        innermost = inner
+        if not inner.cr_frame.f_code.co_filename.startswith(_ASYNCIO_DIR):
+            frame = inner.cr_frame
         inner = getattr(inner, "cr_await", None)
     where = f" at {frame.f_code.co_filename}:{frame.f_lineno}" if frame is not None else ""
+    if innermost is not coro and frame is not getattr(innermost, "cr_frame", None):
+        where += f", awaiting {getattr(innermost, '__qualname__', innermost)}"
     return f"{task.get_name()} ({name}{where})"
+
+
+_ASYNCIO_DIR = asyncio.__file__.rsplit("__init__", 1)[0]
 
 
 def virtual_loop_factory(backend: str = "asyncio", **kwargs: Any) -> Callable[[], VirtualClockLoop]:

@@ -23,12 +23,12 @@ from typing import Any
 
 __all__ = [
     "SeqTimerHandle",
-    "blocked_without_timeout",
     "find_work_items",
     "next_live_timer",
     "problems",
     "push_timer",
     "ready_tasks",
+    "waiting",
     "wrapped_concurrent_future",
 ]
 
@@ -138,21 +138,21 @@ def idle_pool_worker(frame: FrameType) -> bool:
     return frame.f_code is _POOL_WORKER
 
 
-def blocked_without_timeout(frame: FrameType) -> bool:
-    """Whether a thread's innermost frame is a wait that only another thread (or the loop) can end: a
-    ``threading.Condition.wait()`` without timeout (what ``Event.wait``, ``Queue.get``, ``Semaphore.acquire``,
-    ``Barrier.wait`` and ``concurrent.futures.Future.result`` block in) or a ``Thread.join()`` without timeout.
+def waiting(frame: FrameType) -> str | None:
+    """How a thread whose innermost frame is ``frame`` is waiting: ``"blocked"`` when only another thread (or
+    the loop) can end the wait, ``"timed"`` when it ends by itself too, ``None`` when it is not waiting on a
+    ``threading`` primitive (it computes, sleeps, or blocks in I/O: it looks busy).
 
-    A wait *with* a timeout (``Event.wait(0.5)``, a ``threading.Timer``) ends by itself: that thread is busy
-    as far as the clock is concerned, like one in ``time.sleep``.
+    ``threading.Condition.wait`` is where ``Event.wait``, ``Queue.get``, ``Semaphore.acquire``, ``Barrier.wait``
+    and ``concurrent.futures.Future.result`` block; ``Thread.join`` waits for another thread.
     """
     code = frame.f_code
     if code is _CONDITION_WAIT or code is _THREAD_JOIN:
-        return frame.f_locals.get("timeout", 0) is None
+        return "blocked" if frame.f_locals.get("timeout", 0) is None else "timed"
     if code is _TSTATE_LOCK_WAIT:  # Thread.join() before Python 3.13
         local = frame.f_locals
-        return bool(local.get("block", False)) and local.get("timeout", 0) == -1
-    return False
+        return "blocked" if local.get("block", False) and local.get("timeout", 0) == -1 else "timed"
+    return None
 
 
 # -- the checks ---------------------------------------------------------------------------------------------

@@ -351,17 +351,18 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             if ident == me or thread in self._threads_before:
                 continue
             frame = frames.get(ident) if ident is not None else None
-            if frame is not None:
-                if _internals.idle_pool_worker(frame):
-                    continue
-                if _internals.blocked_without_timeout(frame):
-                    census.blocked.append(_thread_name(thread, jobs.get(ident), frame))
-                    continue
+            if frame is not None and _internals.idle_pool_worker(frame):
+                continue
+            wait = _internals.waiting(frame) if frame is not None else None
             name = _thread_name(thread, jobs.get(ident), frame)
-            if thread.daemon and ident not in jobs:
-                census.live.append(name)
+            if wait == "blocked":
+                census.blocked.append(name)
+            elif not thread.daemon or ident in jobs:
+                census.holding.append(name)  # working, or in a timed wait (a threading.Timer)
+            elif wait is None:
+                census.live.append(name)  # a daemon thread at work may answer the loop soon
             else:
-                census.holding.append(name)
+                census.blocked.append(name)  # a daemon thread waiting for work (a tub writer between records)
         if not (census.holding or census.live or census.blocked):
             self._quiet_threads = count
             return _QUIET
@@ -374,10 +375,18 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             return []
         held = list(census.holding)
         if self._jobs:
-            running = {id(cf) for cf, _fn in _internals.find_work_items(sys._current_frames()).values()}
+            # A job holds time until its asyncio future is done (its result may be on its way to the loop
+            # even after the thread finished), unless its thread is blocked waiting to be released.
+            frames = sys._current_frames()
+            running = {}
+            for ident, (cf, _fn) in _internals.find_work_items(frames).items():
+                running[id(cf)] = _internals.waiting(frames[ident]) == "blocked"
             for job in self._jobs.values():
-                if not job.cf.done() and id(job.cf) not in running:
-                    held.append(f"{job.name} (queued, or in another process)")
+                state = running.get(id(job.cf))
+                if state is None:
+                    held.append(f"{job.name} ({'finishing' if job.cf.done() else 'queued, or in another process'})")
+                elif not state and not census.holding:
+                    held.append(job.name)
         if self._procs:
             self._procs = [(p, name) for p, name in self._procs if p.get_returncode() is None]
             held += [name for _p, name in self._procs]
@@ -550,10 +559,8 @@ def _internals_problems() -> tuple[str, ...]:
 def _callable_name(func: Any) -> str:
     """``Event.wait`` for a bound method, the wrapped function for ``asyncio.to_thread``'s partial."""
     while isinstance(func, functools.partial):
-        if getattr(func.func, "__qualname__", "") == "Context.run" and func.args:
-            func = func.args[0]
-        else:
-            func = func.func
+        runs_in_context = getattr(func.func, "__qualname__", "") == "Context.run" and func.args
+        func = func.args[0] if runs_in_context else func.func
     return getattr(func, "__qualname__", None) or repr(func)
 
 

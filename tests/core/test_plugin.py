@@ -18,6 +18,59 @@ async def test_marker_selects_the_virtual_loop():
 
 
 @pytest.mark.asyncio
+@pytest.mark.virtual_clock(autojump_threshold=0.25, budget_s=60, stall_timeout_s=5)
+async def test_marker_arguments_reach_the_loop():
+    loop = asyncio.get_running_loop()
+    assert (loop.autojump_threshold, loop.budget_s, loop.stall_timeout_s) == (0.25, 60, 5)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_test_gets_an_hour_of_virtual_time_by_default():
+    assert asyncio.get_running_loop().budget_s == 3600
+
+
+def test_a_test_that_waits_forever_beside_a_periodic_task_fails_on_its_budget(pytester):
+    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
+    pytester.makepyfile(
+        """
+        import asyncio
+        import pytest
+
+        @pytest.mark.asyncio
+        @pytest.mark.virtual_clock(budget_s=30)
+        async def test_x():
+            async def heartbeat():
+                while True:
+                    await asyncio.sleep(0.5)
+
+            asyncio.create_task(heartbeat())
+            await asyncio.Event().wait()
+        """
+    )
+    result = pytester.runpytest()
+    result.stdout.fnmatch_lines(["*VirtualClockBudgetExceeded: virtual time budget exhausted*past the budget of 30 s*"])
+    assert result.ret != 0
+
+
+def test_an_unknown_marker_argument_is_a_usage_error(pytester):
+    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.asyncio
+        @pytest.mark.virtual_clock(autojump=0.1)
+        async def test_x():
+            pass
+        """
+    )
+    result = pytester.runpytest()
+    result.stdout.fnmatch_lines(["*virtual_clock marker*autojump*the loop takes: start, autojump_threshold, budget_s*"])
+    assert result.ret != 0
+
+
+@pytest.mark.asyncio
 async def test_fixture_selects_the_virtual_loop(virtual_clock):
     assert virtual_clock is asyncio.get_running_loop()
 

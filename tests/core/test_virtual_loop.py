@@ -150,7 +150,8 @@ def test_executor_work_blocked_on_an_event_nobody_sets_is_a_deadlock():
         await asyncio.get_running_loop().run_in_executor(None, release.wait)
 
     try:
-        with pytest.raises(VirtualClockDeadlock, match=r"blocked waiting to be released: thread 'asyncio_0' \(running Event.wait"):
+        blocked = r"blocked waiting to be released: thread 'asyncio_0' \(running Event.wait"
+        with pytest.raises(VirtualClockDeadlock, match=blocked):
             run_virtual(main, deadlock_grace_s=0.05)
     finally:
         release.set()

@@ -31,6 +31,7 @@ The hook is declared ``optionalhook=True`` so this plugin loads harmlessly where
 from __future__ import annotations
 
 import asyncio
+import inspect
 from collections.abc import Generator, Mapping
 from typing import Any
 
@@ -39,14 +40,17 @@ import pytest
 from ..virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
 
 FACTORY_NAME = "virtual_clock"
+#: virtual seconds a test may run unless its marker says otherwise (``budget_s=None``: no limit): a test
+#: waiting for something that never comes beside a periodic task fails in a second instead of running away
+TEST_BUDGET_S = 3600.0
 _DEFAULT_NAME = "asyncio"
 
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
-        "virtual_clock(backend='asyncio', **loop_kwargs): run this asyncio test on asyncdonkey's "
-        "VirtualClockLoop (time jumps to the next timer when every task is waiting)",
+        "virtual_clock(backend='asyncio', autojump_threshold=0.001, budget_s=3600, **loop_kwargs): run this "
+        "asyncio test on asyncdonkey's VirtualClockLoop (time jumps to the next timer when every task is waiting)",
     )
 
 
@@ -78,6 +82,12 @@ def _virtual_factory(item: pytest.Item) -> Any:
             virtual_loop_factory(backend)
         except VirtualClockError as exc:
             raise pytest.UsageError(f"{item.nodeid}: {exc}") from None
+    kwargs.setdefault("budget_s", TEST_BUDGET_S)
+    try:
+        inspect.signature(VirtualClockLoop).bind(**kwargs)
+    except TypeError as exc:
+        knobs = ", ".join(inspect.signature(VirtualClockLoop).parameters)
+        raise pytest.UsageError(f"{item.nodeid}: virtual_clock marker: {exc} (the loop takes: {knobs})") from None
     return virtual_loop_factory(**kwargs)
 
 

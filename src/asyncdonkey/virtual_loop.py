@@ -137,12 +137,11 @@ _QUIET = _Census()
 
 
 class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
-    """The platform selector, with ``select`` routed through the loop's virtual-time policy and a count of the
-    registered file descriptors (one is the loop's own wake-up pipe)."""
+    """The platform selector, counting its registered file descriptors (one is the loop's wake-up pipe). The
+    loop replaces its ``select`` with the virtual-time policy, bound once (this runs every loop iteration)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.policy: Callable[[Callable[[float | None], list[Any]], float | None], list[Any]] | None = None
         self.n_fds = 0
 
     def register(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
@@ -154,11 +153,6 @@ class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-ty
         key = super().unregister(fileobj)
         self.n_fds -= 1
         return key
-
-    def select(self, timeout: float | None = None) -> list[Any]:
-        if self.policy is None:
-            return super().select(timeout)
-        return self.policy(super().select, timeout)
 
 
 class VirtualClockLoop(asyncio.SelectorEventLoop):
@@ -188,7 +182,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self,
         *,
         start: float = 0.0,
-        autojump_threshold: float = 0.002,
+        autojump_threshold: float = 0.001,
         budget_s: float | None = None,
         deadlock_grace_s: float = 1.0,
         stall_timeout_s: float = 60.0,
@@ -233,7 +227,8 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._busy = 0
         self._spin_since: float | None = None
         self._failure: VirtualClockError | None = None
-        selector.policy = self._select
+        self._idle = 0
+        selector.select = functools.partial(self._select, super(_VirtualSelector, selector).select)
 
     # -- time ---------------------------------------------------------------------------------------------
     def time(self) -> float:
@@ -411,9 +406,13 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             return events_
         self._busy = 0
         self._spin_since = None
-        events_ = real_select(0)
-        if events_:
-            return events_
+        # Poll real I/O before moving time. With no outside descriptor only the wake-up pipe could be ready, and
+        # what matters on it (a thread's callback) is already in the ready queue: signals can wait a few jumps.
+        self._idle += 1
+        if self._selector.n_fds > self._own_fds or not self._idle % 8:
+            events_ = real_select(0)
+            if events_:
+                return events_
         census = self._census()
         if census is not _QUIET or self._jobs or self._procs or self._holds or self._external_pending:
             held = self._holders(census)

@@ -201,6 +201,15 @@ def web_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
+    ticks = f"{d.get('ticks', 10_000):,} ticks"
+    return [
+        ("virtual clock", f"{ticks} of a 10-part 20 Hz car (s)", _fmt(d.get("car_s"), 3), "", ""),
+        ("virtual clock", f"{ticks}, the loop alone (s)", _fmt(d.get("loop_s"), 3), "", ""),
+        ("virtual clock", f"{ticks}, plain asyncio without timers (s)", _fmt(d.get("plain_asyncio_s"), 3), "", ""),
+    ]
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "tub": tub_rows,
@@ -209,6 +218,7 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "control_periods": control_rows,
     "mcap_recorder": mcap_rows,
     "web": web_rows,
+    "virtual_clock": virtual_clock_rows,
 }
 
 

@@ -30,29 +30,6 @@ async def test_a_test_gets_an_hour_of_virtual_time_by_default():
     assert asyncio.get_running_loop().budget_s == 3600
 
 
-def test_a_test_that_waits_forever_beside_a_periodic_task_fails_on_its_budget(pytester):
-    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
-    pytester.makepyfile(
-        """
-        import asyncio
-        import pytest
-
-        @pytest.mark.asyncio
-        @pytest.mark.virtual_clock(budget_s=30)
-        async def test_x():
-            async def heartbeat():
-                while True:
-                    await asyncio.sleep(0.5)
-
-            asyncio.create_task(heartbeat())
-            await asyncio.Event().wait()
-        """
-    )
-    result = pytester.runpytest()
-    result.stdout.fnmatch_lines(["*VirtualClockBudgetExceeded: virtual time budget exhausted*past the budget of 30 s*"])
-    assert result.ret != 0
-
-
 def test_an_unknown_marker_argument_is_a_usage_error(pytester):
     pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
     pytester.makepyfile(

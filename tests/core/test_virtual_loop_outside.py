@@ -40,7 +40,7 @@ def reply_from_thread(loop, fut, value, seconds, daemon=False):
     return t
 
 
-SLOW_CHILD = [sys.executable, "-c", "import time; time.sleep(0.2); print('done')"]
+SLOW_CHILD = [sys.executable, "-c", "import time; time.sleep(0.15); print('done')"]
 
 
 # -- real work holds virtual time ----------------------------------------------------------------------------
@@ -50,7 +50,7 @@ def test_a_thread_working_longer_than_the_grace_is_not_a_deadlock():
     async def main():
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
-        reply_from_thread(loop, fut, "result", 0.3)
+        reply_from_thread(loop, fut, "result", 0.15)
         return await fut, loop.time()
 
     assert run_virtual(main, deadlock_grace_s=0.05) == ("result", 0.0)
@@ -121,7 +121,7 @@ def test_wrap_future_of_a_pool_job_holds_time_like_run_in_executor():
 
         task = asyncio.create_task(sleeper())
         with concurrent.futures.ThreadPoolExecutor(1) as pool:
-            await asyncio.wrap_future(pool.submit(time.sleep, 0.3))
+            await asyncio.wrap_future(pool.submit(time.sleep, 0.15))
             order.append(("pool job", loop.time()))
         await task
         return order
@@ -222,7 +222,7 @@ def test_a_stall_is_raised_once_and_names_the_stuck_call():
 
     try:
         with pytest.raises(VirtualClockStall) as info:
-            run_virtual(main, stall_timeout_s=0.3)
+            run_virtual(main, stall_timeout_s=0.2)
     finally:
         release.set()
     message = str(info.value)
@@ -290,7 +290,7 @@ def test_a_task_that_only_yields_is_reported_as_a_livelock():
 def test_a_task_polling_for_a_working_thread_is_not_a_livelock():
     async def main():
         done = []
-        threading.Thread(target=lambda: (time.sleep(0.3), done.append(1))).start()
+        threading.Thread(target=lambda: (time.sleep(0.15), done.append(1))).start()
         while not done:
             await asyncio.sleep(0)
         return asyncio.get_running_loop().time()

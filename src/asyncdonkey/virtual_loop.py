@@ -395,7 +395,10 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     def _select(self, real_select: Callable[[float | None], list[Any]], timeout: float | None) -> list[Any]:
         if timeout == 0:  # callbacks are ready: a busy iteration, time does not move
             n = self._busy = self._busy + 1
-            if n % _POLL_EVERY:
+            # Without threads at work, real I/O can wait a few iterations. With them, poll every time: the
+            # system call releases the GIL, which a thread needs (a loop spinning on sleep(0) while an executor
+            # opens a port would otherwise hand it over only every switch interval, 5 ms).
+            if n % _POLL_EVERY and not self._jobs and threading.active_count() == self._quiet_threads:
                 return []
             events_ = real_select(0)
             if events_:

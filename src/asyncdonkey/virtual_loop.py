@@ -163,14 +163,15 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
 
     Args:
         start: the virtual time the loop starts at (seconds).
-        autojump_threshold: real seconds the loop waits before a jump while a daemon thread or an outside file
-            descriptor is present, so that an answer on its way arrives first. Without either, time jumps at
-            once. ``0`` always jumps at once; a larger value lets slower outside peers keep up.
+        autojump_threshold: real seconds (default 1 ms) the loop waits before a jump while a daemon thread at
+            work or an outside file descriptor is present, so that an answer on its way arrives first. Without
+            either, time jumps at once. ``0`` always jumps at once; a larger value lets slower peers keep up.
         budget_s: virtual seconds the loop may run (from ``start``); a jump beyond raises
             :class:`VirtualClockBudgetExceeded`. ``None``: no limit.
-        deadlock_grace_s: real seconds to wait for outside I/O before declaring a deadlock.
-        stall_timeout_s: real seconds real work may hold virtual time before :class:`VirtualClockStall`.
-        livelock_s: real seconds of busy iterations without time moving and without outside work before
+        deadlock_grace_s: real seconds (default 1) to wait for outside I/O before declaring a deadlock.
+        stall_timeout_s: real seconds (default 60) real work may hold virtual time before
+            :class:`VirtualClockStall`.
+        livelock_s: real seconds (default 5) of busy iterations without time moving and without outside work before
             :class:`VirtualClockLivelock`. ``None``: never.
         livelock_iterations: the same limit counted in loop iterations (checked every 4,096). ``None``: none.
     """
@@ -215,7 +216,6 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self.jumps = 0
         self._timer_seq = itertools.count()
         self._jobs: dict[asyncio.Future[Any], _Job] = {}
-        self._abandoned: list[_Job] = []
         self._external_pending = 0
         self._holds: dict[int, tuple[str, Callable[[], bool]]] = {}
         self._hold_ids = itertools.count()
@@ -286,9 +286,9 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         return fut
 
     def _job_done(self, fut: asyncio.Future[Any]) -> None:
-        job = self._jobs.pop(fut, None)
-        if job is not None and not job.cf.done():
-            self._abandoned.append(job)  # cancelled while its thread still runs: named if shutdown stalls
+        # a job cancelled while its thread still runs no longer holds time (nobody waits for it); if the
+        # default executor's shutdown then waits for it, the stall message names it from the thread's frames
+        self._jobs.pop(fut, None)
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
         if self._failure is not None:

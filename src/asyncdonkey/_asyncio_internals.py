@@ -12,9 +12,9 @@ what changed, rather than mis-timing silently.
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import concurrent.futures.thread as _cf_thread
 import heapq
+import inspect
 import threading
 from asyncio import base_events, events, futures
 from collections.abc import Callable
@@ -23,13 +23,13 @@ from typing import Any
 
 __all__ = [
     "SeqTimerHandle",
-    "find_work_items",
+    "idle_pool_worker",
+    "is_wrap_future",
     "next_live_timer",
     "problems",
     "push_timer",
     "ready_tasks",
     "waiting",
-    "wrapped_concurrent_future",
 ]
 
 # -- timers and the ready queue ------------------------------------------------------------------------------
@@ -98,39 +98,39 @@ def ready_tasks(loop: Any) -> list[asyncio.Task[Any]]:
     return tasks
 
 
-# -- executor futures and the threads that run them -----------------------------------------------------------
+# -- executor futures and what threads are doing -------------------------------------------------------------
+#
+# Only code objects and line numbers are read here, never a frame's locals: on Python <= 3.12 reading
+# ``frame.f_locals`` of another thread's frame stores a snapshot of its variables in the frame, keeping them
+# alive (a TFLite interpreter then refuses to run while a view of its buffers is still referenced).
 
 _WRAP_FUTURE: CodeType = futures.wrap_future.__code__
-_WORK_ITEM_RUN: CodeType = _cf_thread._WorkItem.run.__code__
 _POOL_WORKER: CodeType = _cf_thread._worker.__code__
 _CONDITION_WAIT: CodeType = threading.Condition.wait.__code__
 _THREAD_JOIN: CodeType = threading.Thread.join.__code__
 _TSTATE_LOCK_WAIT: CodeType | None = getattr(getattr(threading.Thread, "_wait_for_tstate_lock", None), "__code__", None)
 
 
-def wrapped_concurrent_future(caller: FrameType) -> concurrent.futures.Future[Any] | None:
-    """If ``caller`` (the frame that called ``loop.create_future``) is ``asyncio.wrap_future``, the
-    ``concurrent.futures.Future`` it is wrapping: that is how executor work reaches the loop, through
-    ``run_in_executor`` or directly (``asyncio.wrap_future(pool.submit(...))``)."""
-    if caller.f_code is not _WRAP_FUTURE:
+def _untimed_acquire_line() -> int | None:
+    """The line of ``Condition.wait`` that blocks without a timeout: ``waiter.acquire()`` under
+    ``if timeout is None:`` (a wait with a timeout blocks on another line)."""
+    try:
+        lines, first = inspect.getsourcelines(threading.Condition.wait)
+    except (OSError, TypeError):
         return None
-    source = caller.f_locals.get("future")
-    return source if isinstance(source, concurrent.futures.Future) else None
+    for i in range(len(lines) - 1):
+        if lines[i].strip() == "if timeout is None:" and lines[i + 1].strip() == "waiter.acquire()":
+            return first + i + 1
+    return None
 
 
-def find_work_items(frames: dict[int, FrameType]) -> dict[int, tuple[concurrent.futures.Future[Any], Any]]:
-    """For each thread (by ident) that is running a ``ThreadPoolExecutor`` job: the job's future and function."""
-    found = {}
-    for ident, frame in frames.items():
-        f: FrameType | None = frame
-        while f is not None:
-            if f.f_code is _WORK_ITEM_RUN:
-                item = f.f_locals.get("self")
-                if item is not None:
-                    found[ident] = (item.future, item.fn)
-                break
-            f = f.f_back
-    return found
+_UNTIMED_ACQUIRE_LINE = _untimed_acquire_line()
+
+
+def is_wrap_future(caller: FrameType) -> bool:
+    """Whether ``caller`` (the frame that called ``loop.create_future``) is ``asyncio.wrap_future``: that is how
+    executor work reaches the loop, through ``run_in_executor`` or directly (``wrap_future(pool.submit(...))``)."""
+    return caller.f_code is _WRAP_FUTURE
 
 
 def idle_pool_worker(frame: FrameType) -> bool:
@@ -144,14 +144,14 @@ def waiting(frame: FrameType) -> str | None:
     ``threading`` primitive (it computes, sleeps, or blocks in I/O: it looks busy).
 
     ``threading.Condition.wait`` is where ``Event.wait``, ``Queue.get``, ``Semaphore.acquire``, ``Barrier.wait``
-    and ``concurrent.futures.Future.result`` block; ``Thread.join`` waits for another thread.
+    and ``concurrent.futures.Future.result`` block; ``Thread.join`` waits for another thread, whose own state
+    says whether it works (so a join counts as blocked, with or without a timeout).
     """
     code = frame.f_code
-    if code is _CONDITION_WAIT or code is _THREAD_JOIN:
-        return "blocked" if frame.f_locals.get("timeout", 0) is None else "timed"
-    if code is _TSTATE_LOCK_WAIT:  # Thread.join() before Python 3.13
-        local = frame.f_locals
-        return "blocked" if local.get("block", False) and local.get("timeout", 0) == -1 else "timed"
+    if code is _CONDITION_WAIT:
+        return "blocked" if frame.f_lineno == _UNTIMED_ACQUIRE_LINE else "timed"
+    if code is _THREAD_JOIN or code is _TSTATE_LOCK_WAIT:
+        return "blocked"
     return None
 
 
@@ -182,18 +182,10 @@ def problems() -> list[str]:
     for name in ("_scheduled", "_ready", "_selector", "select", "_timer_cancelled_count"):
         if name not in names:
             found.append(f"BaseEventLoop._run_once no longer uses {name}")
-    wrap = _WRAP_FUTURE
-    if "create_future" not in wrap.co_names or "future" not in wrap.co_varnames:
-        found.append("asyncio.wrap_future no longer calls loop.create_future() with a local named 'future'")
-    run = _WORK_ITEM_RUN
-    if not {"future", "fn"} <= set(run.co_names) or run.co_varnames[:1] != ("self",):
-        found.append("concurrent.futures.thread._WorkItem.run no longer runs self.fn for self.future")
+    if "create_future" not in _WRAP_FUTURE.co_names:
+        found.append("asyncio.wrap_future no longer calls loop.create_future()")
     if "work_queue" not in _POOL_WORKER.co_varnames:
         found.append("concurrent.futures.thread._worker no longer waits on a work_queue")
-    if _CONDITION_WAIT.co_varnames[:2] != ("self", "timeout"):
-        found.append("threading.Condition.wait no longer takes (self, timeout)")
-    if _THREAD_JOIN.co_varnames[:2] != ("self", "timeout"):
-        found.append("threading.Thread.join no longer takes (self, timeout)")
-    if _TSTATE_LOCK_WAIT is not None and _TSTATE_LOCK_WAIT.co_varnames[:3] != ("self", "block", "timeout"):
-        found.append("threading.Thread._wait_for_tstate_lock no longer takes (self, block, timeout)")
+    if _UNTIMED_ACQUIRE_LINE is None:
+        found.append("threading.Condition.wait no longer blocks in 'waiter.acquire()' under 'if timeout is None:'")
     return found

@@ -102,7 +102,6 @@ class VirtualClockLivelock(VirtualClockError):
     """Tasks kept the loop busy without letting virtual time move and without any outside work."""
 
 
-_WRAP_FUTURE_CODE = _internals._WRAP_FUTURE
 _POLL_EVERY = 64  # a busy loop polls real I/O once in this many iterations
 _LIVELOCK_CHECK_EVERY = 4096  # iterations between livelock checks (a power of two)
 _RESCAN_EVERY = 64  # idle iterations between full thread censuses while the cached one says "quiet"
@@ -113,13 +112,14 @@ _LIBRARY_FILES = frozenset(m.__file__ for m in (threading, concurrent.futures.th
 
 
 class _Job:
-    """Executor work the loop is waiting for: the concurrent future behind an asyncio future."""
+    """Executor work the loop is waiting for, and (for ``run_in_executor``) the thread running it: ``thread[0]``
+    is that thread's ident while the function runs, ``None`` before and after."""
 
-    __slots__ = ("cf", "name")
+    __slots__ = ("name", "thread")
 
-    def __init__(self, cf: concurrent.futures.Future[Any], name: str) -> None:
-        self.cf = cf
+    def __init__(self, name: str) -> None:
         self.name = name
+        self.thread: list[int | None] | None = None
 
 
 class _Census:
@@ -269,20 +269,27 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = futures.Future(loop=self)
-        caller = sys._getframe(1)
-        if caller.f_code is _WRAP_FUTURE_CODE:  # asyncio.wrap_future: executor work is on its way
-            cf = _internals.wrapped_concurrent_future(caller)
-            if cf is not None:
-                self._jobs[fut] = _Job(cf, "a concurrent.futures job")
-                self._quiet_threads = -1
-                fut.add_done_callback(self._job_done)
+        if _internals.is_wrap_future(sys._getframe(1)):  # asyncio.wrap_future: executor work is on its way
+            self._jobs[fut] = _Job("a concurrent.futures job")
+            self._quiet_threads = -1
+            fut.add_done_callback(self._job_done)
         return fut
 
     def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
-        fut = super().run_in_executor(executor, func, *args)
+        thread: list[int | None] = [None]
+
+        def in_the_executor(*call_args: Any) -> Any:
+            thread[0] = threading.get_ident()
+            try:
+                return func(*call_args)
+            finally:
+                thread[0] = None
+
+        fut = super().run_in_executor(executor, in_the_executor, *args)
         job = self._jobs.get(fut)
         if job is not None:
             job.name = _callable_name(func)
+            job.thread = thread
         return fut
 
     def _job_done(self, fut: asyncio.Future[Any]) -> None:
@@ -340,7 +347,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         me = threading.get_ident()
         frames = sys._current_frames()
         census = _Census()
-        jobs = _internals.find_work_items(frames)
+        jobs = {job.thread[0]: job.name for job in self._jobs.values() if job.thread and job.thread[0] is not None}
         for thread in threading.enumerate():
             ident = thread.ident
             if ident == me or thread in self._threads_before:
@@ -349,7 +356,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             if frame is not None and _internals.idle_pool_worker(frame):
                 continue
             wait = _internals.waiting(frame) if frame is not None else None
-            name = _thread_name(thread, jobs.get(ident), frame)
+            name = _thread_name(thread, jobs.get(ident) if ident is not None else None, frame)
             if wait == "blocked":
                 census.blocked.append(name)
             elif not thread.daemon or ident in jobs:
@@ -373,14 +380,12 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             # A job holds time until its asyncio future is done (its result may be on its way to the loop
             # even after the thread finished), unless its thread is blocked waiting to be released.
             frames = sys._current_frames()
-            running = {}
-            for ident, (cf, _fn) in _internals.find_work_items(frames).items():
-                running[id(cf)] = _internals.waiting(frames[ident]) == "blocked"
             for job in self._jobs.values():
-                state = running.get(id(job.cf))
-                if state is None:
-                    held.append(f"{job.name} ({'finishing' if job.cf.done() else 'queued, or in another process'})")
-                elif not state and not census.holding:
+                ident = job.thread[0] if job.thread else None
+                frame = frames.get(ident) if ident is not None else None
+                if frame is None:
+                    held.append(f"{job.name} (queued, finishing, or in a thread the loop cannot see)")
+                elif _internals.waiting(frame) != "blocked" and not census.holding:
                     held.append(job.name)
         if self._procs:
             self._procs = [(p, name) for p, name in self._procs if p.get_returncode() is None]
@@ -522,9 +527,9 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
 
     def _stall_message(self, held: list[str]) -> str:
         if held == ["the default executor's shutdown"]:
-            running = [f"{_callable_name(fn)} in {t}" for t, (_cf, fn) in self._executor_threads().items()]
-            if running:
-                held = [f"the default executor's shutdown, waiting for {', '.join(running)}"]
+            busy = self._census(force=True)
+            if busy.holding or busy.blocked:
+                held = [f"the default executor's shutdown, waiting for {', '.join(busy.holding + busy.blocked)}"]
         return (
             f"virtual time is frozen at {self._virtual_time:.6f} s: real work has not finished after "
             f"{self.stall_timeout_s:g} s of real time: {', '.join(held)}. Time stands still while executor "
@@ -533,11 +538,6 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             f"with time.sleep() for something a task does looks busy (wait on an Event instead). "
             f"Waiting tasks: {self._waiting_tasks()}"
         )
-
-    def _executor_threads(self) -> dict[str, tuple[Any, Any]]:
-        names = {t.ident: t.name for t in threading.enumerate()}
-        items = _internals.find_work_items(sys._current_frames())
-        return {names.get(ident, str(ident)): item for ident, item in items.items()}
 
     def _budget_message(self, when: float, what: str) -> str:
         return (
@@ -566,8 +566,8 @@ def _callable_name(func: Any) -> str:
     return getattr(func, "__qualname__", None) or repr(func)
 
 
-def _thread_name(thread: threading.Thread, job: tuple[Any, Any] | None, frame: Any) -> str:
-    what = f"running {_callable_name(job[1])}" if job is not None else ""
+def _thread_name(thread: threading.Thread, job: str | None, frame: Any) -> str:
+    what = f"running {job}" if job is not None else ""
     while frame is not None and frame.f_code.co_filename in _LIBRARY_FILES:
         frame = frame.f_back  # name the caller of Event.wait(), not threading.py
     where = f"at {frame.f_code.co_filename}:{frame.f_lineno}" if frame is not None else ""

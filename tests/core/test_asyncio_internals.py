@@ -18,7 +18,7 @@ def test_every_internal_the_virtual_clock_relies_on_is_present():
 
 def test_a_changed_internal_is_named(monkeypatch):
     monkeypatch.setattr(internals, "_WRAP_FUTURE", (lambda future: None).__code__)
-    monkeypatch.setattr(internals, "_CONDITION_WAIT", (lambda x: x).__code__)
+    monkeypatch.setattr(internals, "_UNTIMED_ACQUIRE_LINE", None)  # Condition.wait was rewritten
     found = internals.problems()
     assert any("asyncio.wrap_future" in p for p in found), found
     assert any("threading.Condition.wait" in p for p in found), found
@@ -28,3 +28,28 @@ def test_the_loop_refuses_to_start_on_a_python_whose_internals_changed(monkeypat
     monkeypatch.setattr(virtual_loop, "_internals_problems", lambda: ("asyncio event loops have no list _scheduled",))
     with pytest.raises(virtual_loop.VirtualClockError, match=r"cannot run on Python .*no list _scheduled"):
         virtual_loop.VirtualClockLoop()
+
+
+def test_a_thread_blocked_with_and_without_timeout_is_told_apart():
+    import threading
+    import time
+
+    forever, timed, release = threading.Event(), threading.Event(), threading.Event()
+    threads = [
+        threading.Thread(target=forever.wait),
+        threading.Thread(target=timed.wait, args=(30,)),
+        threading.Thread(target=lambda: release.wait() or time.sleep(0)),
+    ]
+    for t in threads:
+        t.start()
+    try:
+        time.sleep(0.05)
+        frames = sys._current_frames()
+        states = [internals.waiting(frames[t.ident]) for t in threads]
+    finally:
+        forever.set()
+        timed.set()
+        release.set()
+        for t in threads:
+            t.join()
+    assert states == ["blocked", "timed", "blocked"]

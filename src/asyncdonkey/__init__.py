@@ -9,6 +9,7 @@ from .latest import Latest, Sample
 from .loop import DriveReport, OutputCountError, PartError, PartSpecError, Vehicle
 from .memory import Memory
 from .poller import Poller
+from .virtual_loop import VirtualClockLoop
 
 __version__ = "0.1.0"
 
@@ -23,6 +24,7 @@ __all__ = [
     "Poller",
     "Sample",
     "Vehicle",
+    "VirtualClockLoop",
     "__version__",
     "get_clock",
 ]

@@ -10,7 +10,7 @@ Design notes:
 * **Decided at add().** How a part is called (inline, awaited, offloaded, threaded) is worked out once in
   :meth:`Vehicle.add`; each tick only walks a list of prepared entries.
 * **One clock.** All timing comes from :func:`asyncdonkey.clock.get_clock` for the loop ``run()`` runs on, so
-  on :class:`asyncdonkey.testing.VirtualClockLoop` the whole drive is virtual and deterministic.
+  on :class:`asyncdonkey.virtual_loop.VirtualClockLoop` the whole drive is virtual and deterministic.
 """
 
 from __future__ import annotations

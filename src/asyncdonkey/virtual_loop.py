@@ -345,26 +345,30 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
                 return _QUIET
         self._rescan = 0
         me = threading.get_ident()
-        frames = sys._current_frames()
         census = _Census()
         jobs = {job.thread[0]: job.name for job in self._jobs.values() if job.thread and job.thread[0] is not None}
-        for thread in threading.enumerate():
-            ident = thread.ident
-            if ident == me or thread in self._threads_before:
-                continue
-            frame = frames.get(ident) if ident is not None else None
-            if frame is not None and _internals.idle_pool_worker(frame):
-                continue
-            wait = _internals.waiting(frame) if frame is not None else None
-            name = _thread_name(thread, jobs.get(ident) if ident is not None else None, frame)
-            if wait == "blocked":
-                census.blocked.append(name)
-            elif not thread.daemon or ident in jobs:
-                census.holding.append(name)  # working, or in a timed wait (a threading.Timer)
-            elif wait is None:
-                census.live.append(name)  # a daemon thread at work may answer the loop soon
-            else:
-                census.blocked.append(name)  # a daemon thread waiting for work (a tub writer between records)
+        frames = sys._current_frames()
+        try:  # frames are dropped before returning: see _thread_states
+            for thread in threading.enumerate():
+                ident = thread.ident
+                if ident == me or thread in self._threads_before:
+                    continue
+                frame = frames.get(ident) if ident is not None else None
+                if frame is not None and _internals.idle_pool_worker(frame):
+                    continue
+                wait = _internals.waiting(frame) if frame is not None else None
+                name = _thread_name(thread, jobs.get(ident) if ident is not None else None, frame)
+                if wait == "blocked":
+                    census.blocked.append(name)
+                elif not thread.daemon or ident in jobs:
+                    census.holding.append(name)  # working, or in a timed wait (a threading.Timer)
+                elif wait is None:
+                    census.live.append(name)  # a daemon thread at work may answer the loop soon
+                else:
+                    census.blocked.append(name)  # a daemon thread waiting for work (a tub writer between records)
+        finally:
+            frame = None
+            frames.clear()
         if not (census.holding or census.live or census.blocked):
             self._quiet_threads = count
             return _QUIET
@@ -379,13 +383,13 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         if self._jobs:
             # A job holds time until its asyncio future is done (its result may be on its way to the loop
             # even after the thread finished), unless its thread is blocked waiting to be released.
-            frames = sys._current_frames()
+            states = _thread_states()
             for job in self._jobs.values():
                 ident = job.thread[0] if job.thread else None
-                frame = frames.get(ident) if ident is not None else None
-                if frame is None:
+                state = states.get(ident, _NO_FRAME) if ident is not None else _NO_FRAME
+                if state is _NO_FRAME:
                     held.append(f"{job.name} (queued, finishing, or in a thread the loop cannot see)")
-                elif _internals.waiting(frame) != "blocked" and not census.holding:
+                elif state != "blocked" and not census.holding:
                     held.append(job.name)
         if self._procs:
             self._procs = [(p, name) for p, name in self._procs if p.get_returncode() is None]
@@ -564,6 +568,25 @@ def _callable_name(func: Any) -> str:
         runs_in_context = getattr(func.func, "__qualname__", "") == "Context.run" and func.args
         func = func.args[0] if runs_in_context else func.func
     return getattr(func, "__qualname__", None) or repr(func)
+
+
+_NO_FRAME = object()
+
+
+def _thread_states() -> dict[int, str | None]:
+    """How each thread waits (:func:`_internals.waiting`), read from its innermost frame and nothing kept.
+
+    Holding another thread's frame object while that frame returns makes CPython copy its local variables
+    into the frame object (3.11+), keeping them alive as long as the frame object lives: a TFLite interpreter
+    then refuses to run because a view of its buffer is still referenced. So frames are read in one pass here
+    and dropped before returning.
+    """
+    frames = sys._current_frames()
+    try:
+        return {ident: _internals.waiting(frame) for ident, frame in frames.items()}
+    finally:
+        frames.clear()
+        del frames
 
 
 def _thread_name(thread: threading.Thread, job: str | None, frame: Any) -> str:

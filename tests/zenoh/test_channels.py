@@ -1,0 +1,185 @@
+"""Publisher and subscriber parts on loopback: values, newest-wins, counters, true ages, the failsafe across a link."""
+
+import asyncio
+import logging
+import math
+import time
+
+import numpy as np
+import pytest
+from zenoh_loopback import until
+
+from asyncdonkey import Vehicle
+from asyncdonkey.parts.actuators import PWMThrottle
+from asyncdonkey.parts.zenoh import ZenohPublisher, ZenohSubscriber
+from asyncdonkey.parts.zenoh.codec import pack_attachment
+from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+
+@pytest.mark.asyncio
+async def test_channels_arrive_under_prefix_with_their_values(link_pair):
+    car, pilot = link_pair("cars/c1")
+    sub = ZenohSubscriber(car, ["pilot/angle", "pilot/throttle", "cam/image_array", "user/mode"])
+    pub = ZenohPublisher(pilot, ["pilot/angle", "pilot/throttle", "cam/image_array", "user/mode"])
+    assert pub.inputs[4:] == ["pilot/angle@age", "pilot/throttle@age", "cam/image_array@age", "user/mode@age"]
+    img = np.random.default_rng(1).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    assert sub.run() == (None, None, None, None) and sub.output_origin() is None
+    await asyncio.sleep(0.2)  # subscription declared on the other side
+    pub.run(-0.25, 0.5, img, "local", 0.0, 0.0, 0.0, 0.0)
+    assert await until(lambda: sub.received == 4)
+    angle, throttle, frame, mode = sub.run()
+    assert (angle, throttle, mode) == (-0.25, 0.5, "local")
+    np.testing.assert_array_equal(frame, img)
+    assert sub.counters()["unexpected"] == 0
+    pub.shutdown()
+    sub.shutdown()
+
+
+@pytest.mark.asyncio
+async def test_newest_value_wins_and_overwritten_values_count_as_dropped(link_pair):
+    car, pilot = link_pair()
+    sub = ZenohSubscriber(car, ["pilot/throttle"])
+    pub = ZenohPublisher(pilot, ["pilot/throttle"])
+    await asyncio.sleep(0.2)
+    for k in range(1, 11):
+        pub.run(k / 10, 0.0)
+    assert await until(lambda: sub.received == 10)
+    assert sub.run() == 1.0
+    assert sub.dropped == 9 and sub.lost == 0 and sub.out_of_order == 0
+    assert sub.run() == 1.0  # held, not consumed: the value stays until a newer one comes
+    assert sub.dropped == 9
+    pub.shutdown()
+    sub.shutdown()
+
+
+@pytest.mark.asyncio
+async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair):
+    car, pilot = link_pair()
+    sub = ZenohSubscriber(car, ["x"], late_after_s=0.1)
+    key = car.key("x")
+    await asyncio.sleep(0.2)
+    for seq, age in [(1, 0.0), (2, 0.0), (5, 0.0), (4, 0.0), (6, 0.5)]:
+        pilot.session.put(key, b"%d" % seq, encoding="application/json", attachment=pack_attachment(age, seq))
+    assert await until(lambda: sub.received + sub.out_of_order == 5)
+    assert sub.run() == 6
+    assert (sub.lost, sub.out_of_order, sub.late) == (2, 1, 1)
+
+
+@pytest.mark.asyncio
+async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link_pair, caplog):
+    car, stranger = link_pair("cars/c1")
+    sub = ZenohSubscriber(car, ["pilot/throttle"])
+    await asyncio.sleep(0.2)
+    with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
+        stranger.session.put("cars/c1/throttle", b"1.0", attachment=pack_attachment(0, 1))
+        stranger.session.put("cars/c1/pilot/throttle", b"1.0")  # no age attachment: not ours
+        assert await until(lambda: sub.unexpected == 2)
+    assert sub.run() is None and sub.received == 0
+    text = caplog.text
+    assert "'cars/c1/throttle'" in text and "not one of the configured channels" in text
+    assert "no age attachment" in text
+
+
+@pytest.mark.asyncio
+async def test_received_age_is_sender_age_plus_transit(link_pair):
+    car, pilot = link_pair()
+    sub = ZenohSubscriber(car, ["cam/image_array"], ping_every_s=0.05)
+    pub = ZenohPublisher(pilot, ["cam/image_array"])
+    task = asyncio.create_task(sub.update())
+    assert await until(lambda: car.pongs_received >= 3)
+    await asyncio.sleep(0.15)
+    rtt_min, _ = car.rtt_s()
+    assert 0 < rtt_min < 0.05 and car.transit_s == pytest.approx(rtt_min / 2)
+    frame = np.zeros((120, 160, 3), np.uint8)
+    t_send = time.monotonic()
+    pub.run(frame, 0.2)  # sensed 200 ms before it was sent
+    assert await until(lambda: sub.received == 1)
+    t_seen = time.monotonic()
+    sub.run()
+    origin = sub.output_origin()
+    # truth is t_send - 0.2; the estimate errs by (this sample's transit - estimated transit): never older than
+    # the truth by more than the estimate, never younger than if the whole send-to-seen time had been free
+    assert t_send - 0.2 - car.transit_s - 1e-4 <= origin <= t_seen - 0.2 - car.transit_s + 1e-4
+    age = sub.ages()["cam/image_array"]
+    assert 0.2 <= age < 0.3
+    task.cancel()
+    pub.shutdown()
+    sub.shutdown()
+
+
+@pytest.mark.asyncio
+async def test_on_change_sends_changes_and_a_keepalive(link_pair):
+    car, pilot = link_pair()
+    sub = ZenohSubscriber(car, ["user/mode"])
+    pub = ZenohPublisher(pilot, ["user/mode"], on_change=True, max_interval_s=0.05)
+    await asyncio.sleep(0.2)
+    for _ in range(5):
+        pub.run("user", 0.0)
+    pub.run("local", 0.0)
+    assert (pub.sent, pub.skipped) == (2, 4)
+    await asyncio.sleep(0.06)
+    pub.run("local", 0.0)  # unchanged, but the keepalive is due
+    assert pub.sent == 3
+    assert await until(lambda: sub.received == 3)
+
+
+def test_bad_arguments_name_the_part(link_pair):
+    car, _ = link_pair()
+    with pytest.raises(ValueError, match="ZenohPublisher: channels"):
+        ZenohPublisher(car, "pilot/angle")
+    with pytest.raises(ValueError, match="jpeg channel 'cam'"):
+        ZenohPublisher(car, ["x"], jpeg={"cam": 80})
+    with pytest.raises(ValueError, match="quality for 'x'"):
+        ZenohPublisher(car, ["x"], jpeg={"x": 0})
+    with pytest.raises(ValueError, match="ZenohSubscriber: channels"):
+        ZenohSubscriber(car, [])
+
+
+class _RemotePilot:
+    """Publishes a throttle of 0.5 from the remote session each tick for ``seconds``, then goes quiet."""
+
+    def __init__(self, pub: ZenohPublisher, seconds: float) -> None:
+        self.pub = pub
+        self.seconds = seconds
+        self.t0: float | None = None
+
+    def run(self) -> None:
+        now = time.monotonic()
+        self.t0 = self.t0 or now
+        if now - self.t0 < self.seconds:
+            self.pub.run(0.5, 0.0)
+
+
+class _Probe:
+    def __init__(self, pca: PCA9685Model) -> None:
+        self.pca = pca
+        self.rows: list[tuple[float, int, float]] = []
+
+    def run(self, age):
+        self.rows.append((time.monotonic(), self.pca.pulse(0), math.inf if age is None else age))
+
+
+@pytest.mark.asyncio
+async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_quiet(link_pair):
+    car, pilot = link_pair("cars/c1")
+    sim = I2CSimulator()
+    pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
+    buses = sim.registry(retry_delay_s=0)
+    v = Vehicle()
+    probe = _Probe(pca)
+    v.add(probe, inputs=["pilot/throttle@age"])
+    v.add(_RemotePilot(ZenohPublisher(pilot, ["pilot/throttle"]), seconds=0.6))
+    v.add(ZenohSubscriber(car, ["pilot/throttle"]), outputs=["pilot/throttle"])
+    throttle = PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0, failsafe_age_s=0.25)
+    v.add(throttle, inputs=["pilot/throttle", "pilot/throttle@age"])
+    await v.run(rate_hz=50, max_loop_count=60)  # 1.2 s: 0.6 s driven, then silence
+    buses.close_all()
+    t0 = probe.rows[0][0]
+    driving = [p for t, p, _ in probe.rows if 0.2 < t - t0 < 0.55]
+    stopped = [p for t, p, _ in probe.rows if t - t0 > 0.6 + 0.25 + 0.1]
+    assert driving and set(driving) == {435}  # the remote 0.5 throttle reached the PWM chip
+    assert stopped and set(stopped) == {370}  # neutral once the command was 250 ms old
+    # (the first ticks may also count one: no command has arrived yet)
+    assert throttle.failsafe_events in (1, 2)
+    ages = [a for t, _, a in probe.rows if 0.2 < t - t0 < 0.55]
+    assert max(ages) < 0.1  # while the pilot talks, its commands are fresh

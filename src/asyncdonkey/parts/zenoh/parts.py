@@ -90,7 +90,7 @@ class ZenohPublisher:
         self.max_interval_s = float(max_interval_s)
         self.jpeg = jpeg
         self._pubs = [
-            link.session.declare_publisher(link.key(ch), congestion_control=zenoh.CongestionControl.DROP, express=True)
+            link.session.declare_publisher(link.key(ch), congestion_control=zenoh.CongestionControl.DROP)
             for ch in self.channels
         ]
         self._seq = [0] * len(self.channels)

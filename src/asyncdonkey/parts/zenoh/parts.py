@@ -19,9 +19,11 @@ used: it is the newest there is); gaps in sequence numbers are counted in ``lost
 goes quiet, the values keep their old origin, so ``"pilot/throttle@age"`` grows and a stale-command failsafe
 downstream stops the car.
 
-**Only the configured keys.** The subscriber listens to ``<prefix>/**`` from other sessions and takes only
-``<prefix>/<channel>`` for its channels; anything else it receives is counted in ``unexpected`` and logged
-(rate-limited) with its key. This is a second line behind the access-control rules of a secure config
+**Only the configured keys.** The subscriber listens, for samples from other sessions, to the smallest key
+expression that covers its channels (``cars/car1/pilot/**`` for ``pilot/angle, pilot/throttle``; or the
+``key_expr`` given) and takes only ``<prefix>/<channel>`` for its channels; anything else it receives there
+(``cars/car1/pilot/mode`` from a misbehaving peer) is counted in ``unexpected`` and logged (rate-limited)
+with its key. This is a second line behind the access-control rules of a secure config
 (``docs/scale-out.md``), which stop unauthorised puts before they reach the process at all.
 """
 
@@ -42,7 +44,7 @@ from ...ratelimit import LogThrottle
 from .codec import CodecError, decode, encode, pack_attachment, unpack_attachment
 from .link import INTERNAL, ZenohLink
 
-__all__ = ["ZenohPublisher", "ZenohSubscriber"]
+__all__ = ["ZenohPublisher", "ZenohSubscriber", "covering_key"]
 
 logger = logging.getLogger(__name__)
 
@@ -175,6 +177,8 @@ class ZenohSubscriber:
         channels: the channels to take, in the order of the part's outputs.
         late_after_s: an arrival whose age (sender's age plus transit) exceeds this is counted in ``late``.
         ping_every_s: how often ``update()`` measures the round trip (``0``: never; ``transit_s`` stays 0).
+        key_expr: what to listen to (default: the smallest key expression covering the channels; give
+            ``"<prefix>/**"`` to audit every key of the car).
 
     Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them),
     ``out_of_order``, ``late``, ``lost`` (sequence gaps), ``unexpected`` (keys not configured, or samples without
@@ -188,6 +192,7 @@ class ZenohSubscriber:
         *,
         late_after_s: float = 0.1,
         ping_every_s: float = 0.5,
+        key_expr: str | None = None,
     ) -> None:
         import zenoh
 
@@ -209,8 +214,9 @@ class ZenohSubscriber:
         self.lost = 0
         self.unexpected = 0
         self.malformed = 0
+        self.key_expr = key_expr or covering_key(list(self._index))
         self._sub = link.session.declare_subscriber(
-            f"{link.prefix}/**", self._on_sample, allowed_origin=zenoh.Locality.REMOTE
+            self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
         )
 
     # -- Zenoh's threads -------------------------------------------------------------------------------
@@ -323,6 +329,19 @@ class ZenohSubscriber:
 
     def __repr__(self) -> str:
         return f"ZenohSubscriber({self.link.prefix!r}, {list(self.channels)!r})"
+
+
+def covering_key(keys: Sequence[str]) -> str:
+    """The smallest key expression matching all ``keys``: the key itself, or their common chunks + ``/**``."""
+    chunks = [k.split("/") for k in keys]
+    if all(c == chunks[0] for c in chunks):
+        return keys[0]
+    common: list[str] = []
+    for parts in zip(*chunks, strict=False):
+        if any(p != parts[0] for p in parts):
+            break
+        common.append(parts[0])
+    return "/".join([*common, "**"])
 
 
 def _bytes(z: Any) -> bytes | None:

@@ -13,6 +13,7 @@ from asyncdonkey import Vehicle
 from asyncdonkey.parts.actuators import PWMThrottle
 from asyncdonkey.parts.zenoh import ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import pack_attachment
+from asyncdonkey.parts.zenoh.parts import covering_key
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 
@@ -74,15 +75,19 @@ async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair
 @pytest.mark.asyncio
 async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link_pair, caplog):
     car, stranger = link_pair("cars/c1")
-    sub = ZenohSubscriber(car, ["pilot/throttle"])
+    sub = ZenohSubscriber(car, ["pilot/angle", "pilot/throttle"])
+    assert sub.key_expr == "cars/c1/pilot/**"
     await asyncio.sleep(0.2)
     with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
-        stranger.session.put("cars/c1/throttle", b"1.0", attachment=pack_attachment(0, 1))
+        stranger.session.put("cars/c1/pilot/mode", b"1.0", attachment=pack_attachment(0, 1))
+        stranger.session.put("cars/c1/sim/cte", b"1.0", attachment=pack_attachment(0, 1))  # not listened to
         stranger.session.put("cars/c1/pilot/throttle", b"1.0")  # no age attachment: not ours
         assert await until(lambda: sub.unexpected == 2)
-    assert sub.run() is None and sub.received == 0
+        await asyncio.sleep(0.1)
+    assert sub.unexpected == 2
+    assert sub.run() == (None, None) and sub.received == 0
     text = caplog.text
-    assert "'cars/c1/throttle'" in text and "not one of the configured channels" in text
+    assert "'cars/c1/pilot/mode'" in text and "not one of the configured channels" in text
     assert "no age attachment" in text
 
 
@@ -127,6 +132,12 @@ async def test_on_change_sends_changes_and_a_keepalive(link_pair):
     pub.run("local", 0.0)  # unchanged, but the keepalive is due
     assert pub.sent == 3
     assert await until(lambda: sub.received == 3)
+
+
+def test_covering_key():
+    assert covering_key(["cars/a/pilot/angle", "cars/a/pilot/throttle"]) == "cars/a/pilot/**"
+    assert covering_key(["cars/a/cam/image_array"]) == "cars/a/cam/image_array"
+    assert covering_key(["cars/a/x", "cars/a/y/z"]) == "cars/a/**"
 
 
 def test_bad_arguments_name_the_part(link_pair):

@@ -33,7 +33,8 @@ import asyncio
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,7 +113,7 @@ class ZenohPublisher:
     def run(self, *values: Any) -> None:
         n = len(self.channels)
         ages = values[n:] if len(values) == 2 * n else (0.0,) * n
-        now = get_clock().now()
+        now = _now()
         for i in range(n):
             value = values[i]
             if value is None:
@@ -179,6 +180,8 @@ class ZenohSubscriber:
         ping_every_s: how often ``update()`` measures the round trip (``0``: never; ``transit_s`` stays 0).
         key_expr: what to listen to (default: the smallest key expression covering the channels; give
             ``"<prefix>/**"`` to audit every key of the car).
+        on_arrival: called with the channel name on Zenoh's thread after each value is stored (to wake an
+            event-driven consumer; it must be quick and must not block).
 
     Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them),
     ``out_of_order``, ``late``, ``lost`` (sequence gaps), ``unexpected`` (keys not configured, or samples without
@@ -193,6 +196,7 @@ class ZenohSubscriber:
         late_after_s: float = 0.1,
         ping_every_s: float = 0.5,
         key_expr: str | None = None,
+        on_arrival: Callable[[str], None] | None = None,
     ) -> None:
         import zenoh
 
@@ -214,6 +218,7 @@ class ZenohSubscriber:
         self.lost = 0
         self.unexpected = 0
         self.malformed = 0
+        self.on_arrival = on_arrival
         self.key_expr = key_expr or covering_key(list(self._index))
         self._sub = link.session.declare_subscriber(
             self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
@@ -256,6 +261,8 @@ class ZenohSubscriber:
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
+        if self.on_arrival is not None:
+            self.on_arrival(self.channels[i])
 
     def _reject(self, key: str, why: str) -> None:
         with self._lock:
@@ -329,6 +336,14 @@ class ZenohSubscriber:
 
     def __repr__(self) -> str:
         return f"ZenohSubscriber({self.link.prefix!r}, {list(self.channels)!r})"
+
+
+def _now() -> float:
+    """The runtime clock; ``time.monotonic()`` (its value on real loops) when called outside a loop."""
+    try:
+        return get_clock().now()
+    except RuntimeError:
+        return time.monotonic()
 
 
 def covering_key(keys: Sequence[str]) -> str:

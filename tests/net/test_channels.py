@@ -66,10 +66,17 @@ async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair
     key = car.key("x")
     await asyncio.sleep(0.2)
     for seq, age in [(1, 0.0), (2, 0.0), (5, 0.0), (4, 0.0), (6, 0.5)]:
-        pilot.session.put(key, b"%d" % seq, encoding="application/json", attachment=pack_attachment(age, seq))
+        att = pack_attachment(age, seq, source=1)
+        pilot.session.put(key, b"%d" % seq, encoding="application/json", attachment=att)
     assert await until(lambda: sub.received + sub.out_of_order == 5)
     assert sub.run() == 6
     assert (sub.lost, sub.out_of_order, sub.late) == (2, 1, 1)
+    # the sender restarts: a new source numbering from 1 again (and its first sample may be lost)
+    for seq in (2, 3):
+        att = pack_attachment(0, seq, source=2)
+        pilot.session.put(key, b"%d" % (100 + seq), encoding="application/json", attachment=att)
+    assert await until(lambda: sub.run() == 103)
+    assert sub.restarts == 1 and sub.out_of_order == 1
 
 
 @pytest.mark.asyncio

@@ -74,14 +74,14 @@ def test_numpy_scalars_are_sent_as_plain_json_numbers():
     assert json.loads(encode({"a": np.int64(3)}, "d").payload) == {"a": 3}
 
 
-def test_attachment_is_age_and_sequence_little_endian():
-    att = pack_attachment(0.125, 7)
-    assert len(att) == 16 and struct.unpack("<dQ", att) == (0.125, 7)
-    assert unpack_attachment(att) == (0.125, 7)
+def test_attachment_is_age_sequence_and_source_little_endian():
+    att = pack_attachment(0.125, 7, 99)
+    assert len(att) == 24 and struct.unpack("<dQQ", att) == (0.125, 7, 99)
+    assert unpack_attachment(att) == (0.125, 7, 99)
     assert unpack_attachment(None) is None
     assert unpack_attachment(b"short") is None
-    assert unpack_attachment(struct.pack("<dQ", -1.0, 1)) is None
-    assert unpack_attachment(struct.pack("<dQ", float("nan"), 1)) is None
+    assert unpack_attachment(struct.pack("<dQQ", -1.0, 1, 1)) is None
+    assert unpack_attachment(struct.pack("<dQQ", float("nan"), 1, 1)) is None
 
 
 def test_errors_name_the_channel_and_share_the_root():

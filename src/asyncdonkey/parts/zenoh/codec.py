@@ -17,8 +17,10 @@ list or dict
 bytes                            ``application/octet-stream``                   as is
 ================================ ============================================== ==================================
 
-The **attachment** of every sample is 16 bytes, little-endian: ``float64`` age in seconds of the sensing behind
-the value at the moment it was sent, then ``uint64`` sequence number of the sample on its key (1, 2, ...).
+The **attachment** of every sample is 24 bytes, little-endian: ``float64`` age in seconds of the sensing behind
+the value at the moment it was sent, ``uint64`` sequence number of the sample on its key (1, 2, ...), and
+``uint64`` source: a random number drawn by each publisher when it starts, so a receiver can tell a restarted
+sender (whose numbering starts over) from late samples.
 The age, not a timestamp, crosses the network because the two machines' clocks are not synchronised; the
 receiver adds the transit it measured (see :mod:`.link`).
 """
@@ -53,7 +55,7 @@ OCTET = "application/octet-stream"
 NDARRAY = "application/octet-stream;ndarray"
 JPEG = "image/jpeg"
 JSON = "application/json"
-ATTACHMENT = struct.Struct("<dQ")
+ATTACHMENT = struct.Struct("<dQQ")
 
 
 class CodecError(AsyncdonkeyError, ValueError):
@@ -68,19 +70,19 @@ class Encoded:
     encoding: str
 
 
-def pack_attachment(age_s: float, seq: int) -> bytes:
-    """The 16-byte attachment: age of the value at send time (s, float64 LE), sequence number (uint64 LE)."""
-    return ATTACHMENT.pack(age_s, seq)
+def pack_attachment(age_s: float, seq: int, source: int = 0) -> bytes:
+    """The 24-byte attachment: age at send time (s, float64 LE), sequence number and source (uint64 LE each)."""
+    return ATTACHMENT.pack(age_s, seq, source)
 
 
-def unpack_attachment(data: bytes | None) -> tuple[float, int] | None:
-    """``(age_s, seq)`` from an attachment, or ``None`` if it is absent or not ours (a foreign publisher)."""
+def unpack_attachment(data: bytes | None) -> tuple[float, int, int] | None:
+    """``(age_s, seq, source)`` from an attachment, or ``None`` if it is absent or not ours (a foreign publisher)."""
     if data is None or len(data) != ATTACHMENT.size:
         return None
-    age, seq = ATTACHMENT.unpack(data)
+    age, seq, source = ATTACHMENT.unpack(data)
     if not math.isfinite(age) or age < 0:
         return None
-    return age, seq
+    return age, seq, source
 
 
 def encode(value: Any, channel: str, *, jpeg_quality: int | None = None) -> Encoded:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import random
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -63,7 +64,8 @@ class ZenohPublisher:
         jpeg: channel → JPEG quality (1-100) for image channels to send as JPEG instead of raw arrays.
 
     Add it with ``inputs=publisher.inputs``: the channels, then ``"<channel>@age"`` for each, so every sample
-    carries the age of the sensing behind it. ``sent``, ``skipped`` (unchanged) and ``errors`` count per run.
+    carries the age of the sensing behind it (added with the channels alone, values count as sensed when sent).
+    ``sent``, ``skipped`` (unchanged) and ``errors`` count samples.
     """
 
     def __init__(
@@ -97,6 +99,8 @@ class ZenohPublisher:
             for ch in self.channels
         ]
         self._seq = [0] * len(self.channels)
+        #: drawn at start, sent with every sample: receivers tell a restarted publisher from late samples
+        self.source = random.getrandbits(63) + 1
         self._last: list[Any] = [None] * len(self.channels)
         self._last_t = [-math.inf] * len(self.channels)
         self._log = LogThrottle(5.0)
@@ -132,7 +136,9 @@ class ZenohPublisher:
                     logger.warning("ZenohPublisher: %s (not sent)", exc)
                 continue
             self._seq[i] += 1
-            self._pubs[i].put(enc.payload, encoding=enc.encoding, attachment=pack_attachment(age, self._seq[i]))
+            self._pubs[i].put(
+                enc.payload, encoding=enc.encoding, attachment=pack_attachment(age, self._seq[i], self.source)
+            )
             self._last[i] = value
             self._last_t[i] = now
             self.sent += 1
@@ -167,6 +173,7 @@ class _Held:
     value: Any
     origin: float
     seq: int
+    source: int
     fresh: bool  # not yet taken by run()
 
 
@@ -184,8 +191,9 @@ class ZenohSubscriber:
             event-driven consumer; it must be quick and must not block).
 
     Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them),
-    ``out_of_order``, ``late``, ``lost`` (sequence gaps), ``unexpected`` (keys not configured, or samples without
-    our attachment), ``malformed`` (payloads that did not decode).
+    ``out_of_order`` (numbered below the newest: discarded), ``late``, ``lost`` (sequence gaps), ``restarts``
+    (a sample from a new source, e.g. a restarted pilot: taken), ``unexpected`` (keys not configured, or
+    samples without our attachment), ``malformed`` (payloads that did not decode).
     """
 
     def __init__(
@@ -218,6 +226,7 @@ class ZenohSubscriber:
         self.lost = 0
         self.unexpected = 0
         self.malformed = 0
+        self.restarts = 0
         self.on_arrival = on_arrival
         self.key_expr = key_expr or covering_key(list(self._index))
         self._sub = link.session.declare_subscriber(
@@ -236,7 +245,7 @@ class ZenohSubscriber:
         if meta is None:
             self._reject(key, "carries no age attachment (not an asyncdonkey publisher)")
             return
-        age, seq = meta
+        age, seq, source = meta
         try:
             value = decode(sample.payload.to_bytes(), str(sample.encoding), key)
         except CodecError as exc:
@@ -250,14 +259,16 @@ class ZenohSubscriber:
         with self._lock:
             held = self._held[i]
             if held is not None:
-                if seq <= held.seq and seq > 1:
+                if source != held.source:
+                    self.restarts += 1  # another sender, or the same one restarted: its numbering starts over
+                elif seq <= held.seq:
                     self.out_of_order += 1
                     return
-                if seq > held.seq + 1:
+                elif seq > held.seq + 1:
                     self.lost += seq - held.seq - 1
                 if held.fresh:
                     self.dropped += 1
-            self._held[i] = _Held(value, now - age_here, seq, True)
+            self._held[i] = _Held(value, now - age_here, seq, source, True)
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
@@ -325,6 +336,7 @@ class ZenohSubscriber:
                 "lost": self.lost,
                 "unexpected": self.unexpected,
                 "malformed": self.malformed,
+                "restarts": self.restarts,
             }
 
     def shutdown(self) -> None:

@@ -12,16 +12,18 @@ Across a shared network use the mutual-TLS configs of ``asyncdonkey zenoh-pair``
 ========================= =============================================== =====================================
 part                      inputs                                          outputs
 ========================= =============================================== =====================================
-ZenohSubscriber                                                           cam/image_array (origin: the car's
+ZenohSubscriber (pushes)                                                  cam/image_array (origin: the car's
                                                                           capture time, carried across)
-NewFrame                  cam/image_array                                 pilot/new_frame
-OnnxPilot (if new frame)  cam/image_array                                 pilot/angle, pilot/throttle
-ZenohPublisher (if new)   pilot/*, pilot/*@age
+OnnxPilot (pipelined,     cam/image_array                                 pilot/angle, pilot/throttle
+started by each frame)
+ZenohPublisher (react)    pilot/*, pilot/*@age
 ========================= =============================================== =====================================
 
-The commands inherit the frame's origin, so the age the car sees on ``pilot/throttle`` is the whole
-camera-to-command time: the car's capture, the link both ways and the inference. The loop runs faster than
-the camera (50 Hz) so a frame waits at most 20 ms for the pilot; the model runs once per new frame.
+Each frame starts the pilot the moment it arrives (the subscriber pushes it into Memory, the pilot is
+triggered by ``cam/image_array``), and the publisher sends each command the moment the pilot publishes it
+(``react=True``), so no tick period is added on this side. The commands inherit the frame's origin, so the age
+the car sees on ``pilot/throttle`` is the whole camera-to-command time: the car's capture, the link both ways
+and the inference. The ticks (20 Hz) also re-send the newest command with its true (growing) age.
 """
 
 from __future__ import annotations
@@ -34,23 +36,8 @@ from asyncdonkey import Vehicle
 from asyncdonkey.parts.pilot import OnnxPilot
 from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 
-DRIVE_LOOP_HZ = 50
+DRIVE_LOOP_HZ = 20
 DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "sim_pilot.onnx"
-
-
-class NewFrame:
-    """True on the ticks that bring a frame the pilot has not seen yet."""
-
-    def __init__(self) -> None:
-        self._last: Any = None
-        self.frames = 0
-
-    def run(self, image: Any) -> bool:
-        if image is None or image is self._last:
-            return False
-        self._last = image
-        self.frames += 1
-        return True
 
 
 def make_pilot(model: str | Path = DEFAULT_MODEL, *, zenoh: Any = None, prefix: str = "cars/sim") -> Vehicle:
@@ -58,15 +45,15 @@ def make_pilot(model: str | Path = DEFAULT_MODEL, *, zenoh: Any = None, prefix: 
     v = Vehicle()
     link = ZenohLink(prefix, zenoh)
     v.add(ZenohSubscriber(link, ["cam/image_array"]), outputs=["cam/image_array"])
-    v.add(NewFrame(), inputs=["cam/image_array"], outputs=["pilot/new_frame"])
     v.add(
         OnnxPilot(model),
         inputs=["cam/image_array"],
         outputs=["pilot/angle", "pilot/throttle"],
-        run_condition="pilot/new_frame",
+        pipelined=True,
+        trigger="cam/image_array",
     )
     commands = ZenohPublisher(link, ["pilot/angle", "pilot/throttle"])
-    v.add(commands, inputs=commands.inputs, run_condition="pilot/new_frame")
+    v.add(commands, inputs=commands.inputs, react=True)
     return v
 
 

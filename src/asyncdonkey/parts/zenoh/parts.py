@@ -14,6 +14,11 @@ in ``dropped``; a sample older (by sequence number) than the one already held is
 ``out_of_order``; a sample whose age on arrival exceeds ``late_after_s`` is counted in ``late`` (and still
 used: it is the newest there is); gaps in sequence numbers are counted in ``lost``.
 
+**Pushing.** A subscriber of one channel is also a push source (``subscribe(callback)``, as the cameras): when
+its channel triggers a pipelined part (``trigger="cam/image_array"``), the drive loop writes each value into
+Memory the moment it arrives and starts that part at once, instead of at the next tick
+(``examples/remote_pilot.py`` runs its pilot this way; see ``docs/control-periods.md``).
+
 **Ages stay true.** The subscriber's ``output_origin()`` is the oldest origin among the values its last
 ``run()`` returned, each being ``receipt - age_at_send - link.transit_s`` (:mod:`.link`). When the sender
 goes quiet, the values keep their old origin, so ``"pilot/throttle@age"`` grows and a stale-command failsafe
@@ -58,7 +63,9 @@ class ZenohPublisher:
         link: the :class:`.ZenohLink` to publish on.
         channels: the Memory channels to send.
         on_change: send a channel only when its value changed (a different object, or an unequal scalar), but
-            at least every ``max_interval_s`` so receivers can tell "unchanged" from "sender gone".
+            at least every ``max_interval_s`` so receivers can tell "unchanged" from "sender gone". An unchanged
+            value re-sensed in between is not re-sent, so the receiver may see it up to ``max_interval_s`` older
+            than it is: keep ``on_change`` for slow channels (modes, settings), not for commands.
         max_interval_s: the longest silence per channel with ``on_change`` (keep it well under the receiver's
             failsafe window).
         jpeg: channel → JPEG quality (1-100) for image channels to send as JPEG instead of raw arrays.
@@ -190,7 +197,8 @@ class ZenohSubscriber:
         on_arrival: called with the channel name on Zenoh's thread after each value is stored (to wake an
             event-driven consumer; it must be quick and must not block).
 
-    Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them),
+    Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them, when
+    nothing is subscribed to the pushes),
     ``out_of_order`` (numbered below the newest: discarded), ``late``, ``lost`` (sequence gaps), ``restarts``
     (a sample from a new source, e.g. a restarted pilot: taken), ``unexpected`` (keys not configured, or
     samples without our attachment), ``malformed`` (payloads that did not decode).
@@ -228,6 +236,7 @@ class ZenohSubscriber:
         self.malformed = 0
         self.restarts = 0
         self.on_arrival = on_arrival
+        self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
         self._sub = link.session.declare_subscriber(
             self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
@@ -266,12 +275,15 @@ class ZenohSubscriber:
                     return
                 elif seq > held.seq + 1:
                     self.lost += seq - held.seq - 1
-                if held.fresh:
+                if held.fresh and not self._pushes:
                     self.dropped += 1
-            self._held[i] = _Held(value, now - age_here, seq, source, True)
+            origin = now - age_here
+            self._held[i] = _Held(value, origin, seq, source, True)
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
+        for push in self._pushes:
+            push(value, origin)
         if self.on_arrival is not None:
             self.on_arrival(self.channels[i])
 
@@ -287,6 +299,21 @@ class ZenohSubscriber:
                 why,
                 n,
             )
+
+    def subscribe(self, callback: Callable[[Any, float], None]) -> Callable[[], None]:
+        """Call ``callback(value, origin)`` on Zenoh's thread for each value taken (one-channel subscribers only).
+
+        The drive loop subscribes when this part's channel triggers a pipelined part; the callback must be
+        thread-safe (the loop's hands the value over with ``call_soon_threadsafe``). Returns the unsubscriber.
+        """
+        if len(self.channels) != 1:
+            raise ValueError(f"{self!r}: subscribe() needs a subscriber of exactly one channel")
+        self._pushes = (*self._pushes, callback)
+
+        def unsubscribe() -> None:
+            self._pushes = tuple(c for c in self._pushes if c is not callback)
+
+        return unsubscribe
 
     # -- the tick --------------------------------------------------------------------------------------
     def run(self) -> Any:

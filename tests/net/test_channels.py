@@ -207,3 +207,44 @@ async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_q
     assert throttle.failsafe_events in (1, 2)
     ages = [a for t, _, a in probe.rows if 0.2 < t - t0 < 0.55]
     assert max(ages) < 0.1  # while the pilot talks, its commands are fresh
+
+
+class _Seen:
+    """A pipelined part triggered by the remote channel: records when each value reached it."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float]] = []
+
+    def run(self, value):
+        self.rows.append((time.monotonic(), value))
+
+
+class _Sender:
+    """From the remote session: one value every 30 ms, from the second tick on (the route is up by then)."""
+
+    def __init__(self, pub: ZenohPublisher) -> None:
+        self.pub = pub
+
+    async def update(self) -> None:
+        await asyncio.sleep(0.3)
+        for k in range(1, 6):
+            self.pub.run(float(k), 0.0)
+            await asyncio.sleep(0.03)
+
+    def run(self) -> None:
+        pass
+
+
+@pytest.mark.asyncio
+async def test_a_one_channel_subscriber_pushes_each_value_to_a_triggered_part_between_ticks(link_pair):
+    car, pilot = link_pair()
+    with pytest.raises(ValueError, match="exactly one channel"):
+        ZenohSubscriber(car, ["a", "b"]).subscribe(lambda value, origin: None)
+    seen = _Seen()
+    v = Vehicle()
+    v.add(_Sender(ZenohPublisher(pilot, ["x"])))
+    v.add(ZenohSubscriber(car, ["x"], ping_every_s=0), outputs=["x"])
+    v.add(seen, inputs=["x"], pipelined=True, trigger="x")
+    await v.run(rate_hz=2, max_loop_count=3)  # ticks 0.5 s apart: the values arrive between them
+    values = [val for _, val in seen.rows if val is not None]
+    assert values[-1] == 5.0 and len(values) >= 4  # each arrival started the part (a busy one may merge two)

@@ -138,7 +138,6 @@ class ZenohLink:
         self._rtts: collections.deque[float] = collections.deque(maxlen=rtt_window)
         self.pings_sent = 0
         self.pongs_received = 0
-        self._pong_pub = {}
         self._ping_pub = session.declare_publisher(f"{prefix}/{INTERNAL}/ping", express=True)
         self._decls = [
             session.declare_subscriber(

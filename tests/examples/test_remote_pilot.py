@@ -94,7 +94,7 @@ def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
         # the remote pilot's commands open the throttle
         assert _wait(lambda: any(v > 0 for _, v in watch.get("sim/throttle")), 30), "the remote pilot never drove"
         t_drive = time.monotonic()
-        time.sleep(3.0)
+        time.sleep(2.0)
         speeds = [v for t, v in watch.get("sim/speed") if t > t_drive + 1.0]
         assert speeds and min(speeds) > 0.3  # driving, not creeping
         status = watch.get("status")[-1][1]
@@ -105,9 +105,10 @@ def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
         pilot.wait(timeout=10)
         time.sleep(1.0)
         after = [(t - t_kill, v) for t, v in watch.get("sim/throttle") if t > t_kill]
-        # the command's age passes 250 ms at the latest 250 ms after the kill, + one 50 ms tick + delivery
+        # the command's age passes 250 ms at the latest 250 ms after the kill; the next tick (50 ms) stops the car;
+        # 150 ms more for a late tick on a loaded machine and the delivery to this session
         first_zero = next(t for t, v in after if v == 0.0)
-        assert first_zero < FAILSAFE_S + 0.05 + 0.1, after[:12]
+        assert first_zero < FAILSAFE_S + 0.05 + 0.15, after[:12]
         assert all(v == 0.0 for t, v in after if t >= first_zero)
         assert all(v > 0 for t, v in after if t < first_zero - 0.06)  # it was driving until then
     finally:

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 from zenoh_loopback import until
 
 from asyncdonkey import Vehicle
@@ -67,14 +68,14 @@ async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair
     await asyncio.sleep(0.2)
     for seq, age in [(1, 0.0), (2, 0.0), (5, 0.0), (4, 0.0), (6, 0.5)]:
         att = pack_attachment(age, seq, source=1)
-        pilot.session.put(key, b"%d" % seq, encoding="application/json", attachment=att)
+        _put(pilot, key, b"%d" % seq, encoding="application/json", attachment=att)
     assert await until(lambda: sub.received + sub.out_of_order == 5)
     assert sub.run() == 6
     assert (sub.lost, sub.out_of_order, sub.late) == (2, 1, 1)
     # the sender restarts: a new source numbering from 1 again (and its first sample may be lost)
     for seq in (2, 3):
         att = pack_attachment(0, seq, source=2)
-        pilot.session.put(key, b"%d" % (100 + seq), encoding="application/json", attachment=att)
+        _put(pilot, key, b"%d" % (100 + seq), encoding="application/json", attachment=att)
     assert await until(lambda: sub.run() == 103)
     assert sub.restarts == 1 and sub.out_of_order == 1
 
@@ -86,16 +87,28 @@ async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link
     assert sub.key_expr == "cars/c1/pilot/**"
     await asyncio.sleep(0.2)
     with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
-        stranger.session.put("cars/c1/pilot/mode", b"1.0", attachment=pack_attachment(0, 1))
-        stranger.session.put("cars/c1/sim/cte", b"1.0", attachment=pack_attachment(0, 1))  # not listened to
-        stranger.session.put("cars/c1/pilot/throttle", b"1.0")  # no age attachment: not ours
-        assert await until(lambda: sub.unexpected == 2)
+        _put(stranger, "cars/c1/pilot/throttle", b"1.0")  # no age attachment: not ours
+        assert await until(lambda: sub.unexpected == 1)
+        _put(stranger, "cars/c1/sim/cte", b"1.0", attachment=pack_attachment(0, 1))  # not listened to
+        for k in range(20):  # a peer spraying keys
+            _put(stranger, f"cars/c1/pilot/x{k}", b"1.0", attachment=pack_attachment(0, 1))
+        assert await until(lambda: sub.unexpected == 21)
         await asyncio.sleep(0.1)
-    assert sub.unexpected == 2
+    assert sub.unexpected == 21
     assert sub.run() == (None, None) and sub.received == 0
-    text = caplog.text
-    assert "'cars/c1/pilot/mode'" in text and "not one of the configured channels" in text
-    assert "no age attachment" in text
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1  # rate-limited whatever the keys: one line per 5 s
+    assert "'cars/c1/pilot/throttle'" in lines[0] and "no age attachment" in lines[0]
+    _put(stranger, "cars/c1/pilot/mode", b"1.0", attachment=pack_attachment(0, 1))
+    assert await until(lambda: sub.unexpected == 22)
+
+
+def test_the_rejection_message_names_the_key_and_why(link_pair, caplog):
+    car, _ = link_pair("cars/c1")
+    sub = ZenohSubscriber(car, ["pilot/throttle"])
+    with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
+        sub._reject("cars/c1/pilot/mode", "is not one of the configured channels")
+    assert "'cars/c1/pilot/mode': it is not one of the configured channels (1 ignored so far)" in caplog.text
 
 
 @pytest.mark.asyncio
@@ -157,6 +170,11 @@ def test_bad_arguments_name_the_part(link_pair):
         ZenohPublisher(car, ["x"], jpeg={"x": 0})
     with pytest.raises(ValueError, match="ZenohSubscriber: channels"):
         ZenohSubscriber(car, [])
+
+
+def _put(link, key, payload, **kw):
+    """A raw put from a test's peer; BLOCK so a burst is never dropped on a busy machine."""
+    link.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **kw)
 
 
 class _RemotePilot:

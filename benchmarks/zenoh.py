@@ -146,7 +146,9 @@ def round_trips(port: int, n: int) -> dict:
 
 def throughput(port: int, echo_proc: subprocess.Popen, seconds: float) -> dict:
     img = frame()
-    tx_link = ZenohLink("bench/tp", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"])).acquire()
+    tx_link = ZenohLink(
+        "bench/tp", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    ).acquire()
 
     def received() -> tuple[int, int]:
         echo_proc.stdin.write("\n")
@@ -225,7 +227,9 @@ def ticks_while_publishing(seconds: float) -> dict:
     rx = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
     received = [0]
     rx.declare_subscriber("bench/car/**", lambda _s: received.__setitem__(0, received[0] + 1))
-    link = ZenohLink("bench/car", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"])).acquire()
+    link = ZenohLink(
+        "bench/car", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    ).acquire()
     out: dict[str, dict] = {}
     try:
         warm = Vehicle()  # the first drive of a process pays for imports and first calls: not measured

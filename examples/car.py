@@ -446,6 +446,11 @@ def build(argv: list[str]) -> Vehicle:
     if args.pilot == "remote":
         from asyncdonkey.parts.zenoh import zenoh_config
 
+        if not (args.zenoh_config or args.zenoh_listen or args.zenoh_connect):
+            raise ValueError(
+                "--pilot remote needs --zenoh-config FILE (the car config of `asyncdonkey zenoh-pair`) or, on a bench,"
+                " --zenoh-listen tcp/127.0.0.1:PORT: Zenoh's defaults would let anyone on the network steer the car"
+            )
         zenoh = zenoh_config(
             args.zenoh_config,
             mode="peer" if args.zenoh_listen or args.zenoh_connect else None,

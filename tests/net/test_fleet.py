@@ -39,8 +39,12 @@ def _car(link: ZenohLink, mode: str) -> tuple[Vehicle, FleetStatus]:
 async def test_two_cars_publish_status_and_the_view_shows_both():
     port = free_port()
     view_link = ZenohLink("fleet/view", listener(port))
-    a = ZenohLink("cars/alpha", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
-    b = ZenohLink("cars/bravo", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    a = ZenohLink(
+        "cars/alpha", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    )
+    b = ZenohLink(
+        "cars/bravo", zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    )
     watcher = FleetWatcher(view_link.session)
     try:
         va, status_a = _car(a, "local")

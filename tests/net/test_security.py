@@ -6,6 +6,7 @@ pilot/view configs or variations of them. Puts that the rules refuse must never 
 
 import asyncio
 import json
+import logging
 import os
 import stat
 
@@ -14,6 +15,7 @@ from zenoh_loopback import free_port, until
 
 from asyncdonkey.cli import main
 from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
+from asyncdonkey.parts.zenoh.link import exposure
 from asyncdonkey.parts.zenoh.pairing import make_pair
 
 CMD = ["pilot/angle", "pilot/throttle"]
@@ -89,6 +91,36 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
     finally:
         for link in links:
             link.close()
+
+
+def test_open_sessions_are_named_and_a_command_subscriber_on_one_warns(pair, caplog):
+    files, _, port = pair
+    assert exposure(zenoh_config(files.car_config)) == []
+    assert exposure(zenoh_config(files.pilot_config)) == []
+    assert exposure(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port + 1}"])) == []  # loopback only
+    assert exposure(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"])) == [
+        "listens on tcp/0.0.0.0:7447 without TLS"
+    ]
+    assert exposure(zenoh_config(mode="client", connect=["tcp/192.0.2.1:7447"])) == [
+        "connects to tcp/192.0.2.1:7447 without TLS"
+    ]
+    assert exposure(zenoh_config(mode="peer", listen=["tls/0.0.0.0:7447"])) == [
+        "listens on tls/0.0.0.0:7447 without client certificates"
+    ]
+    assert "every interface" in exposure(None)[0]
+    # a session listening on every interface is not opened here (tests bind loopback only): a loopback one
+    # stands in, marked with what exposure() says of such a config
+    link = ZenohLink(
+        "cars/open", zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], multicast_scouting=False)
+    )
+    link.exposure = exposure(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"]))
+    try:
+        with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
+            ZenohSubscriber(link, CMD)
+        assert "anyone who can reach this session can write these channels" in caplog.text
+        assert "listens on tcp/0.0.0.0:7447 without TLS" in caplog.text and "zenoh-pair" in caplog.text
+    finally:
+        link.close()
 
 
 def test_pair_writes_private_keys_owner_only_and_a_deny_by_default_car(pair):

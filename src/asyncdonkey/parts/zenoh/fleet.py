@@ -208,7 +208,8 @@ def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], flo
         mode=args.mode,
         connect=args.connect,
         listen=args.listen,
-        multicast_scouting=None if args.config or args.connect or args.listen else True,
+        # a config file decides; named endpoints need no discovery; neither: find the cars on the LAN
+        multicast_scouting=None if args.config else not (args.connect or args.listen),
     )
     session = zenoh.open(cfg)
     watcher = FleetWatcher(session, args.key)

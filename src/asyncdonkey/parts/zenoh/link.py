@@ -28,7 +28,7 @@ from typing import Any
 
 from ...errors import AsyncdonkeyError
 
-__all__ = ["ZenohConfigError", "ZenohLink", "zenoh_config"]
+__all__ = ["ZenohConfigError", "ZenohLink", "exposure", "zenoh_config"]
 
 logger = logging.getLogger(__name__)
 
@@ -93,6 +93,48 @@ def zenoh_config(
     return cfg
 
 
+def _json(cfg: Any, key: str) -> Any:
+    try:
+        return json.loads(cfg.get_json(key))
+    except Exception:
+        return None
+
+
+def _loopback(endpoint: str) -> bool:
+    _, _, address = endpoint.partition("/")
+    host = address.rsplit(":", 1)[0].strip("[]").split("#")[0]
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+def exposure(cfg: Any) -> list[str]:
+    """Why sessions other than the intended ones could publish to a session with this config (empty: none).
+
+    An endpoint is closed when it is loopback, or TLS/QUIC with mutual TLS (a peer needs a certificate of the
+    configured CA); anything else (plain ``tcp/``, ``udp/``, TLS without client certificates) on a reachable
+    address lets whoever reaches it publish, unless access control restricts it.
+    """
+    if cfg is None:
+        return ["Zenoh's default config (listening on every interface, multicast scouting on)"]
+    mode = _json(cfg, "mode") or "peer"
+    mtls = bool(_json(cfg, "transport/link/tls/enable_mtls"))
+    acl = bool(_json(cfg, "access_control/enabled"))
+    reasons = []
+    for kind in ("listen", "connect"):
+        endpoints = _json(cfg, f"{kind}/endpoints") or []
+        if isinstance(endpoints, dict):
+            endpoints = endpoints.get(mode, [])
+        for ep in endpoints:
+            scheme = str(ep).split("/", 1)[0]
+            if _loopback(str(ep)) or (scheme in ("tls", "quic") and mtls):
+                continue
+            verb = "listens on" if kind == "listen" else "connects to"
+            how = "without client certificates" if scheme in ("tls", "quic") else "without TLS"
+            reasons.append(f"{verb} {ep} {how}")
+    if reasons and acl:
+        return []  # the access rules decide who may publish what
+    return reasons
+
+
 class ZenohLink:
     """A Zenoh session plus the key prefix of one car's channels, shared by the parts that use it.
 
@@ -127,10 +169,14 @@ class ZenohLink:
         if session is None:
             if isinstance(config, str | Path):
                 config = zenoh_config(config)
+            #: why others than the intended peers could publish to this session (``[]``: nobody can)
+            self.exposure = exposure(config)
             try:
                 session = zenoh.open(config if config is not None else zenoh.Config())
             except Exception as exc:
                 raise ZenohConfigError(f"ZenohLink {prefix!r}: cannot open a Zenoh session: {exc}") from None
+        else:
+            self.exposure = []  # a session given to us: its owner knows how it is configured
         self.session = session
         self.zid = str(session.zid())
         self._users = 0

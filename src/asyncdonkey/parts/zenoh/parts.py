@@ -238,6 +238,13 @@ class ZenohSubscriber:
         self.on_arrival = on_arrival
         self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
+        if link.exposure:
+            logger.warning(
+                "ZenohSubscriber %s: anyone who can reach this session can write these channels (it %s). "
+                "For commands, use the configs of `asyncdonkey zenoh-pair` (docs/scale-out.md).",
+                list(self.channels),
+                "; ".join(link.exposure),
+            )
         self._sub = link.session.declare_subscriber(
             self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
         )

@@ -130,3 +130,12 @@ def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
     car_out = outputs[-1]
     assert "StaleCommandStop: throttle command is" in car_out
     assert "off track 0 ticks" in car_out
+
+
+def test_the_car_refuses_a_remote_pilot_on_zenohs_open_defaults():
+    import pytest
+    from example_loader import load_example
+
+    car_py = load_example("car")
+    with pytest.raises(ValueError, match="anyone on the network steer the car"):
+        car_py.build(["--pilot", "remote"])

@@ -10,13 +10,16 @@ processes are killed at the end whatever happens.
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
+import pytest
 import zenoh
+from example_loader import load_example
 
 from asyncdonkey.parts.zenoh import zenoh_config
 
@@ -25,8 +28,6 @@ FAILSAFE_S = 0.25
 
 
 def _free_port() -> int:
-    import socket
-
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -133,9 +134,6 @@ def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
 
 
 def test_the_car_refuses_a_remote_pilot_on_zenohs_open_defaults():
-    import pytest
-    from example_loader import load_example
-
     car_py = load_example("car")
     with pytest.raises(ValueError, match="anyone on the network steer the car"):
         car_py.build(["--pilot", "remote"])

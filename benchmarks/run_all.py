@@ -208,6 +208,40 @@ def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
         ("virtual clock", f"{ticks}, the loop alone (s)", _fmt(d.get("loop_s"), 3), "", ""),
         ("virtual clock", f"{ticks}, plain asyncio without timers (s)", _fmt(d.get("plain_asyncio_s"), 3), "", ""),
     ]
+def zenoh_rows(d: dict[str, Any]) -> list[Row]:
+    """Channels over Zenoh: our figure, with raw Zenoh's (the floor) in the figure's name; no Donkeycar column."""
+    rows: list[Row] = []
+    for name, r in (d.get("round_trip") or {}).items():
+        floor = _fmt(_get(r, "raw", "p50_ms"), 3)
+        rows.append(
+            (f"zenoh {name}", f"round trip p50 (ms; raw Zenoh {floor})", _fmt(_get(r, "channel", "p50_ms"), 3), "", "")
+        )
+    for name, r in (d.get("throughput") or {}).items():
+        floor = _fmt(_get(r, "raw", "received_per_s"), 0)
+        rows.append(
+            (
+                f"zenoh {name}",
+                f"received/s flat out (raw Zenoh {floor})",
+                _fmt(_get(r, "channel", "received_per_s"), 0),
+                "",
+                "",
+            )
+        )
+    ticks = d.get("ticks_20hz") or {}
+    base = _fmt(_get(ticks, "no publishing", "lateness_p99_ms"), 3)
+    for name in ("frame raw", "frame JPEG"):
+        r = ticks.get(name) or {}
+        rows.append(
+            (
+                f"zenoh 20 Hz, {name}",
+                f"tick lateness p99 (ms; not publishing {base})",
+                _fmt(r.get("lateness_p99_ms"), 3),
+                "",
+                "",
+            )
+        )
+        rows.append((f"zenoh 20 Hz, {name}", "added CPU (ms per s)", _fmt(r.get("added_cpu_ms_per_s"), 1), "", ""))
+    return rows
 
 
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
@@ -219,6 +253,7 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "mcap_recorder": mcap_rows,
     "web": web_rows,
     "virtual_clock": virtual_clock_rows,
+    "zenoh": zenoh_rows,
 }
 
 

@@ -7,6 +7,7 @@
     make run ARGS="-- --pilot models/mine.onnx"             # drive on your own model (.onnx or .tflite)
     make run ARGS="-- --web"                                # drive it yourself from a browser or a phone
     asyncdonkey run examples/car.py --hz 50 -- --laps 3     # any rate; stop after 3 laps
+    asyncdonkey run examples/car.py -- --pilot remote --zenoh-listen tcp/127.0.0.1:7447   # off-board pilot
 
 The parts are the ones a real car uses, in Donkeycar's order and with Donkeycar's channel names; only the
 camera and the actuators are the simulator's (see ``examples/car_pi.py`` for the same graph on hardware):
@@ -34,6 +35,11 @@ With ``--web`` a person drives instead: the controller is the :class:`~asyncdonk
 (open the URL it prints), the drive runs until Ctrl-C, and the page's mode buttons hand the car to the pilot
 and back. The simulated car has no ESC, so :class:`StaleThrottleStop` does what ``PWMThrottle``'s failsafe does
 on a real car: a page that goes quiet, hidden or away stops the car.
+
+With ``--pilot remote`` the pilot runs in another process or on another machine (``examples/remote_pilot.py``):
+the car publishes its camera frames, telemetry and status over Zenoh under ``cars/sim`` and takes
+``pilot/angle, pilot/throttle`` from the network; a :class:`StaleCommandStop` before the simulated car stops it
+when the remote command is ``--failsafe-ms`` old (see ``docs/scale-out.md``).
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ DRIVE_LOOP_HZ = 20
 #: how long `make run` drives when neither --seconds nor --laps is given (a lap and a bit)
 DEFAULT_SECONDS = 25.0
 DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "sim_pilot.onnx"
+#: Where the car's channels live on the network with ``--pilot remote``.
+REMOTE_PREFIX = "cars/sim"
 #: What a recording holds: Donkeycar's channels plus the simulator's ground truth for analysis.
 RECORD_INPUTS = (
     ("cam/image_array", "image_array"),
@@ -262,8 +270,16 @@ def make_car(
     pilot_mode: str = "frame",
     pilot_delay: float = 0.0,
     web: dict[str, Any] | None = None,
+    zenoh: Any = None,
+    prefix: str = REMOTE_PREFIX,
+    jpeg: int | None = None,
+    failsafe_s: float = 0.25,
 ) -> tuple[Vehicle, SimCar]:
-    """Assemble the simulated car. ``pilot`` is a model path (``.onnx`` or ``.tflite``) or ``"user"`` (no pilot).
+    """Assemble the simulated car. ``pilot`` is a model path (``.onnx`` or ``.tflite``), ``"user"`` (no pilot) or
+    ``"remote"``.
+
+    ``"remote"``: the pilot's commands come over Zenoh (``zenoh`` is the session config or config file) under
+    ``prefix``; the camera goes out raw, or as JPEG of quality ``jpeg``.
 
     ``pilot_mode``: ``"in-order"`` (the pilot inside the tick, as Donkeycar runs it), ``"pipelined"`` (beside
     the ticks, started each tick) or ``"frame"`` (beside the ticks, started by each new camera frame, with the
@@ -274,6 +290,7 @@ def make_car(
     Returns the vehicle and the simulated car (for its simulator's state after the drive).
     """
     user_only = str(pilot) == "user"
+    remote = str(pilot) == "remote"
     drive_mode = normalise_mode(mode or ("user" if user_only or web is not None else "local"), "car.py --mode")
     if user_only and drive_mode != "user":
         raise ValueError(f"--mode {drive_mode} needs a pilot; --pilot user drives in user mode only")
@@ -283,6 +300,12 @@ def make_car(
     car.sim.render()  # builds the track texture and camera tables now, not in the first tick
     v.add(car.camera, outputs=["cam/image_array"])
     v.add(car.telemetry, outputs=list(TELEMETRY_OUTPUTS))
+    if remote:
+        from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber
+
+        link = ZenohLink(prefix, zenoh)
+        camera_out = ZenohPublisher(link, ["cam/image_array"], jpeg={"cam/image_array": jpeg} if jpeg else None)
+        v.add(camera_out, inputs=camera_out.inputs)
     if web is not None:
         from asyncdonkey.parts.web import WebController
 
@@ -297,8 +320,10 @@ def make_car(
         )
     if pilot_mode not in PILOT_MODES:
         raise ValueError(f"car.py --pilot-mode: expected one of {', '.join(PILOT_MODES)}, got {pilot_mode!r}")
-    react = not user_only and pilot_mode == "frame"
-    if not user_only:
+    react = not user_only and not remote and pilot_mode == "frame"
+    if remote:
+        v.add(ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"]), outputs=["pilot/angle", "pilot/throttle"])
+    elif not user_only:
         from asyncdonkey.parts.pilot import load_pilot  # the runtime loads only when a pilot drives
 
         v.add(PilotCondition(), inputs=["user/mode"], outputs=["run_pilot"])
@@ -321,6 +346,11 @@ def make_car(
     if web is not None:
         v.add(StaleThrottleStop(), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"], react=react)
         v.add(car, inputs=["angle", "sim/throttle"], react=react)
+    elif remote:
+        from asyncdonkey.parts.failsafe import StaleCommandStop
+
+        v.add(StaleCommandStop(failsafe_s), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"])
+        v.add(car, inputs=["angle", "sim/throttle"], react=react)
     else:
         v.add(car, inputs=["angle", "throttle"], react=react)
     if record is not None:
@@ -329,6 +359,13 @@ def make_car(
         names, types = zip(*RECORD_INPUTS, strict=True)
         writer = TubWriter(record, inputs=names, types=types, metadata=[f"pilot:{pilot}", f"mode:{drive_mode}"])
         v.add(writer, inputs=list(names), outputs=["tub/num_records"], run_condition="recording")
+    if remote:
+        from asyncdonkey.parts.zenoh.fleet import FleetStatus
+
+        telemetry_out = ZenohPublisher(link, ["sim/throttle", "angle", "sim/speed", "sim/cte", "sim/laps"])
+        v.add(telemetry_out, inputs=telemetry_out.inputs)
+        fleet = FleetStatus(link, v, ages=["cam/image_array", "pilot/throttle", "sim/throttle"])
+        v.add(fleet, inputs=["user/mode", "tub/num_records"])
     v.add(
         Status(v, car, seconds=seconds, laps=laps, stream=status),
         inputs=["sim/laps", "sim/cte", "sim/off_track"],
@@ -345,8 +382,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument(
         "--pilot",
         default=str(DEFAULT_MODEL),
-        help="model to drive on (.onnx, or .tflite with the tflite extra), or 'user' for the scripted driver "
-        "alone (default: the shipped sim pilot)",
+        help="model to drive on (.onnx, or .tflite with the tflite extra), 'user' for the scripted driver alone, "
+        "or 'remote' for a pilot over Zenoh (default: the shipped sim pilot)",
     )
     ap.add_argument("--mode", choices=DRIVE_MODES, help="drive mode (default: local with a pilot)")
     ap.add_argument("--record", metavar="TUB", help="record a Tub v2 into this directory")
@@ -387,6 +424,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument(
         "--web-host", default="0.0.0.0", help="address to listen on (default: all, so a phone on the LAN can drive)"
     )
+    net = ap.add_argument_group("remote pilot (--pilot remote)")
+    net.add_argument("--zenoh-config", metavar="FILE", help="Zenoh config file (e.g. car.json5 from zenoh-pair)")
+    net.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447")
+    net.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT")
+    net.add_argument(
+        "--prefix", default=REMOTE_PREFIX, help=f"key prefix of the car's channels (default {REMOTE_PREFIX})"
+    )
+    net.add_argument("--jpeg", type=int, metavar="QUALITY", help="send camera frames as JPEG of this quality")
+    net.add_argument("--failsafe-ms", type=float, default=250, help="stop when the command is this old (default 250)")
     args = ap.parse_args(argv)
     if args.seconds is None:  # --laps N or --web drive without a time limit; otherwise DEFAULT_SECONDS
         args.seconds = 0.0 if args.laps or args.web else DEFAULT_SECONDS
@@ -396,7 +442,23 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def build(argv: list[str]) -> Vehicle:
     """The ``asyncdonkey run`` entry: options after ``--`` (see ``--help``)."""
     args = parse_args(argv)
-    if args.pilot != "user" and not Path(args.pilot).is_file():
+    zenoh = None
+    if args.pilot == "remote":
+        from asyncdonkey.parts.zenoh import zenoh_config
+
+        if not (args.zenoh_config or args.zenoh_listen or args.zenoh_connect):
+            raise ValueError(
+                "--pilot remote needs --zenoh-config FILE (the car config of `asyncdonkey zenoh-pair`) or, on a bench,"
+                " --zenoh-listen tcp/127.0.0.1:PORT: Zenoh's defaults would let anyone on the network steer the car"
+            )
+        zenoh = zenoh_config(
+            args.zenoh_config,
+            mode="peer" if args.zenoh_listen or args.zenoh_connect else None,
+            listen=args.zenoh_listen,
+            connect=args.zenoh_connect,
+            multicast_scouting=False if args.zenoh_listen or args.zenoh_connect else None,
+        )
+    elif args.pilot != "user" and not Path(args.pilot).is_file():
         hint = " (make it with: python examples/train.py)" if Path(args.pilot) == DEFAULT_MODEL else ""
         raise FileNotFoundError(f"pilot model {args.pilot} not found{hint}; or drive with --pilot user")
     vehicle, _ = make_car(
@@ -412,5 +474,9 @@ def build(argv: list[str]) -> Vehicle:
         pilot_mode=args.pilot_mode,
         pilot_delay=args.pilot_delay,
         web={"port": args.web_port, "host": args.web_host} if args.web else None,
+        zenoh=zenoh,
+        prefix=args.prefix,
+        jpeg=args.jpeg,
+        failsafe_s=args.failsafe_ms / 1e3,
     )
     return vehicle

@@ -158,6 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .quantize import add_quantize_parser
 
     add_quantize_parser(sub)
+    from .parts.zenoh.cli import add_zenoh_parsers
+
+    add_zenoh_parsers(sub)
     return parser
 
 

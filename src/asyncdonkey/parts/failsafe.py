@@ -1,0 +1,60 @@
+"""A stale-command stop for actuators that have no failsafe of their own (the simulator, a foreign driver).
+
+``PWMThrottle`` stops the car itself when its command gets old; an actuator without that (``SimCar``, a
+Donkeycar part) gets the same rule from this part, placed just before it::
+
+    v.add(StaleCommandStop(max_age_s=0.25), inputs=["throttle", "throttle@age"], outputs=["throttle"])
+    v.add(car, inputs=["angle", "throttle"])
+
+A command whose age (the sensing behind it, see ``docs/provenance.md``) reaches ``max_age_s`` is replaced by
+``stopped`` (0.0). With a remote pilot the age includes the network, so losing the pilot, its link or its
+camera feed stops the car within the window. Unlike ``PWMThrottle``'s watchdog this acts on ticks only: it
+cannot help when the loop itself is stalled.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+from ..clock import get_clock
+from ..ratelimit import LogThrottle
+
+__all__ = ["StaleCommandStop"]
+
+logger = logging.getLogger(__name__)
+
+
+class StaleCommandStop:
+    """``run(command, age) -> command``, or ``stopped`` once ``age >= max_age_s`` (``None`` age: never written)."""
+
+    def __init__(self, max_age_s: float = 0.25, *, stopped: float = 0.0, name: str = "throttle") -> None:
+        if not (isinstance(max_age_s, int | float) and max_age_s > 0 and math.isfinite(max_age_s)):
+            raise ValueError(f"StaleCommandStop: max_age_s must be a positive number, got {max_age_s!r}")
+        self.max_age_s = float(max_age_s)
+        self.stopped = stopped
+        self.name = name
+        self.active = False
+        self.events = 0
+        self._log = LogThrottle(1.0)
+
+    def run(self, command: Any, age: float | None) -> Any:
+        stale = age is None or not age < self.max_age_s
+        if stale != self.active:
+            self.active = stale
+            if stale and command is not None:
+                self.events += 1
+                now = get_clock().now()
+                if self._log.allow("stale", now):
+                    logger.warning(
+                        "StaleCommandStop: %s command is %.0f ms old (limit %.0f ms): holding %r (event %d)",
+                        self.name,
+                        math.inf if age is None else age * 1e3,
+                        self.max_age_s * 1e3,
+                        self.stopped,
+                        self.events,
+                    )
+        if command is None:
+            return None
+        return self.stopped if stale else command

@@ -1,0 +1,232 @@
+"""The fleet view: each car publishes a small status on ``<prefix>/status``; ``asyncdonkey top`` shows them all.
+
+A car adds :class:`FleetStatus` (no outputs; its inputs are the drive mode and the record count)::
+
+    v.add(FleetStatus(link, v, ages=["cam/image_array", "pilot/throttle"]), inputs=["user/mode", "tub/num_records"])
+
+Every ``every_s`` its background task publishes one JSON document (encoding ``application/json``) on
+``<prefix>/status``, readable by any Zenoh client::
+
+    {"car": "cars/car1", "hz": 20.0, "lateness_p99_ms": 0.41, "overruns": 0, "ticks": 1200,
+     "parts": {"SimCamera": 0.05, ...}, "ages_ms": {"cam/image_array": 12.3, ...},
+     "mode": "local", "records": 0, "rtt_ms": 0.3, "sent_unix": 1767000000.0}
+
+(``parts``: mean ms per part over the last ``window`` ticks; ``ages_ms``: age of each listed channel's value
+when the status was made, ``null`` if never written; ``overruns``: ticks over their period in that window.)
+
+``asyncdonkey top`` subscribes to ``cars/*/status`` and redraws one row per car, htop-style; a car whose
+status has not come for ``3 * every`` shows as gone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import shutil
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, TextIO
+
+import numpy as np
+
+from ...clock import get_clock
+from .link import ZenohLink, zenoh_config
+
+__all__ = ["STATUS_KEY", "FleetStatus", "FleetWatcher", "render_fleet", "top_main"]
+
+STATUS_KEY = "status"
+
+
+class FleetStatus:
+    """Publish the car's status on ``<prefix>/status`` every ``every_s`` (see the module docstring)."""
+
+    def __init__(
+        self,
+        link: ZenohLink,
+        vehicle: Any,
+        *,
+        ages: Sequence[str] = (),
+        every_s: float = 0.5,
+        window: int = 200,
+    ) -> None:
+        if not every_s > 0:
+            raise ValueError(f"FleetStatus: every_s must be > 0, got {every_s!r}")
+        self.link = link.acquire()
+        self.vehicle = vehicle
+        self.ages = tuple(ages)
+        self.every_s = float(every_s)
+        self.window = int(window)
+        self.ticks = 0
+        self.mode: Any = None
+        self.records: Any = None
+        self._pub = link.session.declare_publisher(link.key(STATUS_KEY))
+        self.published = 0
+
+    def run(self, mode: Any = None, records: Any = None) -> None:
+        self.ticks += 1
+        self.mode = mode
+        self.records = records
+
+    def status(self, hz: float) -> dict[str, Any]:
+        prof = self.vehicle.profiler
+        w = self.window
+        late = prof.lateness.recent(drop_last=False)[-w:]
+        over = prof.overrun.recent(drop_last=False)[-w:]
+        parts = {}
+        for name, series in prof.parts.items():
+            recent = series.recent(drop_last=False)[-w:]
+            if len(recent):
+                parts[name] = round(float(recent.mean()) * 1e3, 3)
+        mem = self.vehicle.mem
+        ages = {}
+        for ch in self.ages:
+            a = mem.age(ch)
+            ages[ch] = round(a * 1e3, 1) if math.isfinite(a) else None
+        rtt = self.link.rtt_s()
+        return {
+            "car": self.link.prefix,
+            "hz": round(hz, 2),
+            "lateness_p99_ms": round(float(np.percentile(late, 99)) * 1e3, 3) if len(late) else None,
+            "overruns": int(np.count_nonzero(over > 0)) if len(over) else 0,
+            "ticks": self.ticks,
+            "parts": parts,
+            "ages_ms": ages,
+            "mode": None if self.mode is None else str(self.mode),
+            "records": self.records if isinstance(self.records, int | float) else None,
+            "rtt_ms": round(rtt[1] * 1e3, 3) if rtt else None,
+            "sent_unix": time.time(),  # for humans only; ages above never depend on it
+        }
+
+    def publish(self, hz: float) -> dict[str, Any]:
+        doc = self.status(hz)
+        self._pub.put(json.dumps(doc, separators=(",", ":")).encode(), encoding="application/json")
+        self.published += 1
+        return doc
+
+    async def update(self) -> None:
+        clock = get_clock()
+        t_last, n_last = clock.now(), self.ticks
+        next_t = t_last
+        while not self.link.closed:
+            next_t += self.every_s
+            await clock.sleep_until(next_t)
+            now, n = clock.now(), self.ticks
+            hz = (n - n_last) / (now - t_last) if now > t_last else 0.0
+            t_last, n_last = now, n
+            self.publish(hz)
+            await asyncio.sleep(0)
+
+    def shutdown(self) -> None:
+        try:
+            self._pub.undeclare()
+        except Exception:
+            pass
+        self.link.release()
+
+
+class FleetWatcher:
+    """Collect the newest status of every car matching ``key`` (``cars/*/status``) on a Zenoh session."""
+
+    def __init__(self, session: Any, key: str = f"cars/*/{STATUS_KEY}") -> None:
+        self._lock = threading.Lock()
+        self.cars: dict[str, tuple[dict[str, Any], float]] = {}
+        self.bad = 0
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+            if not isinstance(doc, dict):
+                raise ValueError("not an object")
+        except ValueError:
+            with self._lock:
+                self.bad += 1
+            return
+        key = str(sample.key_expr)
+        name = key[: -len(STATUS_KEY) - 1] if key.endswith("/" + STATUS_KEY) else key
+        with self._lock:
+            self.cars[name] = (doc, time.monotonic())
+
+    def snapshot(self) -> dict[str, tuple[dict[str, Any], float]]:
+        with self._lock:
+            return dict(self.cars)
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+
+
+def _ms(x: Any, fmt: str = "{:.2f}") -> str:
+    return "-" if x is None else fmt.format(x)
+
+
+def render_fleet(
+    cars: Mapping[str, tuple[Mapping[str, Any], float]], now: float, *, gone_after_s: float = 3.0, width: int = 120
+) -> str:
+    """The ``top`` screen as text: a header, one row per car (sorted by name) and its part times beneath."""
+    live = sum(1 for _, t in cars.values() if now - t <= gone_after_s)
+    lines = [f"asyncdonkey top - {len(cars)} car{'s' if len(cars) != 1 else ''} seen, {live} live"]
+    head = (
+        f"{'CAR':<16} {'HZ':>6} {'LATE p99':>9} {'OVR':>4} {'MODE':<11} {'REC':>6} {'RTT ms':>7} {'SEEN':>5}  AGES ms"
+    )
+    lines.append(head)
+    for name in sorted(cars):
+        doc, t = cars[name]
+        seen = now - t
+        ages = doc.get("ages_ms") or {}
+        age_text = " ".join(f"{k}={_ms(v, '{:.0f}')}" for k, v in ages.items())
+        state = f"{seen:4.1f}s" if seen <= gone_after_s else " gone"
+        row = (
+            f"{name[-16:]:<16} {_ms(doc.get('hz'), '{:6.1f}'):>6} {_ms(doc.get('lateness_p99_ms')):>9}"
+            f" {doc.get('overruns', 0):>4} {str(doc.get('mode') or '-')[:11]:<11}"
+            f" {_ms(doc.get('records'), '{:.0f}'):>6}"
+            f" {_ms(doc.get('rtt_ms')):>7} {state:>5}  {age_text}"
+        )
+        lines.append(row[:width])
+        parts = doc.get("parts") or {}
+        if parts:
+            slow = sorted(parts.items(), key=lambda kv: -kv[1])
+            text = "  ".join(f"{k} {v:.2f}" for k, v in slow)
+            lines.append(("    parts ms: " + text)[:width])
+    if not cars:
+        lines.append("(no car status yet: is a car publishing on this network, and are we connected to it?)")
+    return "\n".join(lines)
+
+
+def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic) -> int:
+    """``asyncdonkey top``: redraw every ``--every`` seconds until Ctrl-C, or print once after ``--once`` s."""
+    import zenoh
+
+    out = stream or sys.stdout
+    cfg = zenoh_config(
+        args.config,
+        mode=args.mode,
+        connect=args.connect,
+        listen=args.listen,
+        # a config file decides; named endpoints need no discovery; neither: find the cars on the LAN
+        multicast_scouting=None if args.config else not (args.connect or args.listen),
+    )
+    session = zenoh.open(cfg)
+    watcher = FleetWatcher(session, args.key)
+    tty = out.isatty()
+    try:
+        if args.once is not None:
+            time.sleep(args.once)
+            out.write(render_fleet(watcher.snapshot(), clock()) + "\n")
+            return 0
+        while True:
+            width = shutil.get_terminal_size((120, 24)).columns
+            screen = render_fleet(watcher.snapshot(), clock(), gone_after_s=3 * max(args.every, 0.5), width=width)
+            out.write(("\x1b[H\x1b[2J" if tty else "") + screen + "\n")
+            out.flush()
+            time.sleep(args.every)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        watcher.close()
+        session.close()

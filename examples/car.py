@@ -33,8 +33,8 @@ carry the driver's command for every frame the pilot saw: the labels a DAgger ro
 
 With ``--web`` a person drives instead: the controller is the :class:`~asyncdonkey.parts.web.WebController`
 (open the URL it prints), the drive runs until Ctrl-C, and the page's mode buttons hand the car to the pilot
-and back. The simulated car has no ESC, so :class:`StaleThrottleStop` does what ``PWMThrottle``'s failsafe does
-on a real car: a page that goes quiet, hidden or away stops the car.
+and back. The simulated car has no ESC, so a :class:`~asyncdonkey.parts.failsafe.StaleCommandStop` does what
+``PWMThrottle``'s failsafe does on a real car: a page that goes quiet, hidden or away stops the car.
 
 With ``--pilot remote`` the pilot runs in another process or on another machine (``examples/remote_pilot.py``):
 the car publishes its camera frames, telemetry and status over Zenoh under ``cars/sim`` and takes
@@ -133,22 +133,6 @@ class SimController:
         else:
             recording = True
         return angle, throttle, self.mode, recording
-
-
-class StaleThrottleStop:
-    """The simulator's stand-in for ``PWMThrottle``'s stale-command failsafe: throttle 0 once the command is
-    ``failsafe_age_s`` old (wire it with ``inputs=["throttle", "throttle@age"]``)."""
-
-    def __init__(self, failsafe_age_s: float = 0.25) -> None:
-        self.failsafe_age_s = failsafe_age_s
-        self.events = 0
-        self._stale = False
-
-    def run(self, throttle: Any, age: float) -> Any:
-        stale = not age < self.failsafe_age_s
-        self.events += stale and not self._stale
-        self._stale = stale
-        return 0.0 if stale else throttle
 
 
 class Status:
@@ -343,13 +327,13 @@ def make_car(
         outputs=["angle", "throttle"],
         react=react,
     )
-    if web is not None:
-        v.add(StaleThrottleStop(), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"], react=react)
-        v.add(car, inputs=["angle", "sim/throttle"], react=react)
-    elif remote:
+    if web is not None or remote:
+        # a person on a web page or a pilot on the network: the simulated car has no ESC, so the library's
+        # stale-command stop does what PWMThrottle's failsafe does on a real car
         from asyncdonkey.parts.failsafe import StaleCommandStop
 
-        v.add(StaleCommandStop(failsafe_s), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"])
+        limit = failsafe_s if remote else 0.25
+        v.add(StaleCommandStop(limit), inputs=["throttle", "throttle@age"], outputs=["sim/throttle"], react=react)
         v.add(car, inputs=["angle", "sim/throttle"], react=react)
     else:
         v.add(car, inputs=["angle", "throttle"], react=react)

@@ -97,7 +97,8 @@ def test_touch_joystick_drives(browser: Any, car: WebCar):
             touch("touchMove", cx + 0.07 * i * box["width"], cy - 0.07 * i * box["height"])
         wait_until(lambda: car.mem["user/angle"] > 0.5 and car.mem["user/throttle"] > 0.2, what="touch driving")
         wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse from the touch pad")
-        assert car.steering_pulse() < 360  # steered right
+        # steered right (the steering writer lands its pulse on its own schedule, just after the throttle's)
+        wait_until(lambda: car.steering_pulse() < 360, what="a right-steering pulse from the touch pad")
         touch("touchEnd", 0, 0)
         wait_until(lambda: car.mem["user/throttle"] == 0 and car.mem["user/angle"] == 0, what="finger lifted")
         assert phone.errors == []

@@ -1,10 +1,33 @@
-"""The one clock the runtime reads.
+"""The one clock the runtime reads, the one deadline schedule every periodic task follows, and how to wait.
 
 Every duration, deadline and timestamp in asyncdonkey comes from a :class:`Clock` taken from the event loop
-the code runs on (DESIGN.md §3.1). On a :class:`~asyncdonkey.testing.VirtualClockLoop` the clock *is* the
-loop's virtual time, so a test controls everything the runtime measures. On a real loop the clock reads
-``time.monotonic()`` (nanosecond resolution on Linux) rather than ``loop.time()``, because uvloop's
-``loop.time()`` only has millisecond resolution; sleeping still goes through the loop's timers.
+the code runs on. On a :class:`~asyncdonkey.testing.VirtualClockLoop` the clock *is* the loop's virtual time,
+so a test controls everything the runtime measures. On a real loop the clock reads ``time.monotonic()``
+(``CLOCK_MONOTONIC``, nanosecond resolution on Linux) rather than ``loop.time()``, because uvloop's
+``loop.time()`` only has millisecond resolution.
+
+Three pieces, used by the drive loop, the hardware pollers and every periodic part:
+
+* :class:`Schedule` says *when*: tick ``k`` is due at ``t0 + k / rate_hz``; a tick that ends more than a period
+  behind skips (and counts) the deadlines it missed instead of running them back to back.
+* :class:`DeadlineWaiter` says *how to wait* for an absolute deadline on the runtime clock, without spinning:
+
+  - **Linux**: a ``timerfd`` armed at the deadline on ``CLOCK_MONOTONIC`` (absolute, no slack) and watched by
+    the running loop (``add_reader``; asyncio and uvloop alike). One timerfd per waiter, re-armed for every
+    wait, closed by :meth:`DeadlineWaiter.close`. Lateness is the kernel's wake-up latency plus one loop pass:
+    a few tenths of a millisecond on a small virtual machine, and never early.
+  - **Elsewhere** (or when a timerfd cannot be created): the loop's own timers. asyncio's selector loop wakes
+    up to a millisecond late (``epoll``/``kqueue`` timeouts are rounded up to whole milliseconds); uvloop's timers
+    count whole milliseconds of a cached clock, so the wait is armed one millisecond long and re-checked, for a
+    lateness of one to two milliseconds. Never early either way: the waiter re-arms until the clock has passed
+    the deadline.
+  - **Virtual clock**: an exact loop timer at the deadline, so runs are deterministic and free of float drift.
+
+* **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
+  ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
+  is learned from the wake-up lateness actually observed (a high percentile of the recent lateness of the
+  early timer), so a quiet machine spins for tens of microseconds, a noisy one for longer, and nobody spins
+  for a guessed constant.
 
 Wall-clock time (``time.time()``) is used only where a human or a file needs it, e.g. ``_timestamp_ms`` in
 recorded records.
@@ -13,15 +36,307 @@ recorded records.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
+import math
 import time
 import weakref
+from array import array
 from collections.abc import Callable
+from typing import Any, Literal
 
-__all__ = ["Clock", "get_clock"]
+from . import _timerfd
 
-#: Below this, a real-loop sleep finishes by yielding instead of arming a timer: uvloop timers round to
-#: whole milliseconds, so a sub-millisecond timer can fire a full millisecond late (or early).
-_SPIN_BELOW_S = 0.0011
+__all__ = ["TICK_EPS", "TIME_EPS", "Clock", "DeadlineWaiter", "Schedule", "get_clock"]
+
+logger = logging.getLogger(__name__)
+
+#: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is neither an overrun nor "behind".
+TIME_EPS = 1e-9
+#: In periods: a deadline this close to ``now`` counts as passed when working out how far behind a tick is.
+TICK_EPS = 1e-6
+
+
+class Schedule:
+    """Deadlines ``t0 + k / rate_hz`` with skip-and-count, the rule every periodic task here follows.
+
+    Computing each deadline from ``t0`` (never by adding periods) means no drift. :meth:`advance` is called
+    once a tick's work has ended: when the next deadline has already passed by less than a period, the next
+    tick starts at once (it is late, not skipped); when the tick ended more than a period after the next
+    deadline, the deadlines it overran are skipped and counted in :attr:`skipped`, and the schedule resumes at
+    the latest deadline already passed. A backlog is never run back to back (no burst).
+    """
+
+    __slots__ = ("k", "period", "rate_hz", "skipped", "t0")
+
+    def __init__(self, rate_hz: float, t0: float) -> None:
+        if not (rate_hz > 0 and math.isfinite(rate_hz)):
+            raise ValueError(f"Schedule: rate_hz must be a positive finite number, got {rate_hz!r}")
+        self.rate_hz = float(rate_hz)
+        self.period = 1.0 / self.rate_hz
+        self.t0 = t0
+        self.k = 0
+        self.skipped = 0
+
+    @property
+    def deadline(self) -> float:
+        """When the current tick (number :attr:`k`) is due."""
+        return self.t0 + self.k / self.rate_hz
+
+    def advance(self, end: float) -> int:
+        """The current tick's work ended at ``end``: move to the next deadline. Returns the deadlines skipped."""
+        rate = self.rate_hz
+        k = self.k + 1
+        if end - (self.t0 + k / rate) > self.period + TIME_EPS:
+            behind = math.floor((end - self.t0) * rate + TICK_EPS)
+            missed = behind - k
+            self.skipped += missed
+            self.k = behind
+            return missed
+        self.k = k
+        return 0
+
+
+WaitMode = Literal["timerfd", "loop-timer", "virtual"]
+
+# Precise mode: how the spin window is learned from observed timer lateness.
+_LATE_SAMPLES = 256  # recent lateness samples kept
+_LATE_QUANTILE = 0.995
+_LATE_REFRESH = 32  # recompute the window every this many samples
+_WINDOW_MARGIN = 1.25  # the window is the quantile times this ...
+_WINDOW_FLOOR_S = 20e-6  # ... at least this (the spin's own check-to-start cost) ...
+_WINDOW_CEIL_S = 5e-3  # ... and at most this, whatever a loaded machine reports
+_WINDOW_START_S = 1e-3  # until the first samples are in
+
+#: Set to False to keep waits off timerfd (tests force the fallback this way; it is also the escape hatch for a
+#: kernel or sandbox where timerfd misbehaves).
+USE_TIMERFD = True
+
+
+class DeadlineWaiter:
+    """Waits for absolute deadlines on the runtime clock, for one task at a time, reusing one OS timer.
+
+    Create one per periodic task (the drive loop, a part's update loop), call :meth:`wait_until` for every
+    deadline and :meth:`close` when done (or use it as a context manager). See the module docstring for the
+    three ways it waits and their precision; :attr:`mode` says which one this waiter uses.
+
+    Args:
+        loop: the event loop it waits on (default: the running loop).
+        precise: arm the timer early by a learned spin window and spin the rest on the clock (see
+            :attr:`spin_window_s`). Costs CPU for the window on every wait; a no-op on the virtual clock.
+    """
+
+    __slots__ = (
+        "__weakref__",
+        "_fut",
+        "_handle",
+        "_late",
+        "_late_n",
+        "_loop",
+        "_now",
+        "_on_loop_timer_cb",
+        "_on_wake_cb",
+        "_tfd",
+        "_timer_slop",
+        "mode",
+        "precise",
+        "spin_window_s",
+        "waits",
+    )
+
+    def __init__(self, loop: asyncio.AbstractEventLoop | None = None, *, precise: bool = False) -> None:
+        loop = loop if loop is not None else asyncio.get_running_loop()
+        clock = get_clock(loop)
+        self._loop = loop
+        self._now = clock.now
+        self._fut: asyncio.Future[None] | None = None
+        self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
+        self._tfd: _timerfd.Timerfd | None = None
+        self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
+        self._on_loop_timer_cb = self._on_loop_timer
+        self.precise = bool(precise) and not clock.is_virtual
+        #: Precise mode: seconds before the deadline the timer is armed; the rest is spun. Learned.
+        self.spin_window_s = _WINDOW_START_S if self.precise else 0.0
+        self._late = array("d")
+        self._late_n = 0
+        #: Waits that actually slept (the deadline had not passed yet).
+        self.waits = 0
+        # uvloop's timers count whole milliseconds of a clock cached at the start of each loop pass: arm them
+        # a millisecond long so they do not fire early (asyncio's own loop times with time.monotonic()).
+        self._timer_slop = 0.0 if isinstance(loop, asyncio.BaseEventLoop) else 1e-3
+        self.mode: WaitMode = "virtual" if clock.is_virtual else "loop-timer"
+        if not clock.is_virtual and USE_TIMERFD and _timerfd.AVAILABLE:
+            self._open_timerfd(loop)
+
+    def _open_timerfd(self, loop: asyncio.AbstractEventLoop) -> None:
+        try:
+            tfd = _timerfd.Timerfd()
+        except OSError as exc:
+            logger.debug("timerfd unavailable (%s): waiting on the loop's timers", exc)
+            return
+        try:
+            loop.add_reader(tfd.fd, self._on_timerfd, tfd)
+        except (NotImplementedError, RuntimeError, OSError, ValueError) as exc:
+            tfd.close()
+            logger.debug("the loop cannot watch a timerfd (%s): waiting on the loop's timers", exc)
+            return
+        self._tfd = tfd
+        self.mode = "timerfd"
+        # an unclosed waiter must not leak its fd once collected (the loop's registration dies with the loop)
+        weakref.finalize(self, tfd.close)
+
+    # ------------------------------------------------------------------------------------------ callbacks
+    def _on_timerfd(self, tfd: _timerfd.Timerfd) -> None:
+        if tfd.fired():
+            fut = self._fut
+            if fut is not None and not fut.done():
+                fut.set_result(None)
+
+    def _on_loop_timer(self) -> None:
+        self._handle = None
+        fut = self._fut
+        if fut is not None and not fut.done():
+            fut.set_result(None)
+
+    def _on_wake(self, _wake: object) -> None:
+        fut = self._fut
+        if fut is not None and not fut.done():
+            fut.set_result(None)
+
+    # ------------------------------------------------------------------------------------------- waiting
+    async def wait_until(self, deadline: float, wake: asyncio.Future[Any] | None = None) -> bool:
+        """Return at (never before) ``deadline`` on the runtime clock, or as soon as ``wake`` is done.
+
+        Returns True when the deadline was reached, False when ``wake`` cut the wait short (``wake`` is only
+        watched, never completed by the waiter). A deadline already passed returns at once on a real loop and
+        after one loop pass on the virtual clock. One wait at a time per waiter.
+        """
+        if self._fut is not None:
+            raise RuntimeError("DeadlineWaiter.wait_until: this waiter is already waiting (one task per waiter)")
+        if self.mode == "virtual":
+            return await self._wait_virtual(deadline, wake)
+        if wake is not None and wake.done():
+            return False
+        now = self._now
+        t = now()
+        if t >= deadline:
+            return True
+        self.waits += 1
+        target = deadline - self.spin_window_s if self.precise else deadline
+        if t < target:
+            loop = self._loop
+            if wake is not None:
+                wake.add_done_callback(self._on_wake_cb)
+            try:
+                while True:
+                    fut = self._fut = loop.create_future()
+                    self._arm(target, t)
+                    try:
+                        await fut
+                    finally:
+                        self._fut = None
+                    if wake is not None and wake.done():
+                        self._disarm()
+                        return False
+                    t = now()
+                    if t >= target:
+                        break
+            except BaseException:
+                self._disarm()
+                raise
+            finally:
+                if wake is not None:
+                    wake.remove_done_callback(self._on_wake_cb)
+            if self.precise:
+                self._learn(t - target)
+        while t < deadline:  # precise mode only: the last stretch is spun on the clock
+            t = now()
+        return True
+
+    def _arm(self, target: float, now: float) -> None:
+        tfd = self._tfd
+        if tfd is not None:
+            tfd.arm(math.ceil(target * 1e9))
+            return
+        delay = target - now
+        if self._timer_slop:
+            delay = math.ceil(delay * 1e3) * 1e-3 + self._timer_slop
+        self._handle = self._loop.call_later(delay, self._on_loop_timer_cb)
+
+    def _disarm(self) -> None:
+        tfd = self._tfd
+        if tfd is not None:
+            if tfd.fd >= 0:
+                tfd.arm(0)
+                tfd.fired()
+            return
+        handle = self._handle
+        if handle is not None:
+            handle.cancel()
+            self._handle = None
+
+    async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:
+        loop = self._loop
+        if deadline <= loop.time():
+            await asyncio.sleep(0)
+            return True
+        if wake is not None and wake.done():
+            return False
+        self.waits += 1
+        fut = self._fut = loop.create_future()
+        handle = loop.call_at(deadline, _set_done, fut)  # exactly at the deadline: no float error accumulates
+        if wake is not None:
+            wake.add_done_callback(self._on_wake_cb)
+        try:
+            await fut
+        finally:
+            self._fut = None
+            handle.cancel()
+            if wake is not None:
+                wake.remove_done_callback(self._on_wake_cb)
+        return not (wake is not None and wake.done() and loop.time() < deadline)
+
+    def _learn(self, late: float) -> None:
+        """Keep the recent lateness of the early timer; every few waits, set the window to its high quantile."""
+        samples = self._late
+        n = self._late_n
+        if len(samples) < _LATE_SAMPLES:
+            samples.append(late)
+        else:
+            samples[n % _LATE_SAMPLES] = late
+        n = self._late_n = n + 1
+        if n % _LATE_REFRESH == 0 or n == 8:
+            ordered = sorted(samples)
+            q = ordered[min(len(ordered) - 1, int(_LATE_QUANTILE * len(ordered)))]
+            self.spin_window_s = min(max(q * _WINDOW_MARGIN, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
+
+    # ------------------------------------------------------------------------------------------ lifetime
+    @property
+    def closed(self) -> bool:
+        tfd = self._tfd
+        return tfd is not None and tfd.fd < 0
+
+    def close(self) -> None:
+        """Release the OS timer (idempotent). A waiter on the loop's timers has nothing to release."""
+        tfd = self._tfd
+        if tfd is None or tfd.fd < 0:
+            return
+        loop = self._loop
+        if not loop.is_closed():
+            with contextlib.suppress(Exception):
+                loop.remove_reader(tfd.fd)
+        fut = self._fut
+        if fut is not None and not fut.done():
+            fut.set_result(None)  # a wait in progress returns (it re-checks the clock, see below)
+        tfd.close()
+        self._tfd = None
+        self.mode = "loop-timer"  # a later wait still works, on the loop's timers
+
+    def __enter__(self) -> DeadlineWaiter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class Clock:
@@ -37,45 +352,15 @@ class Clock:
         self.is_virtual: bool = bool(getattr(loop, "is_virtual_clock", False))
         self.now: Callable[[], float] = loop.time if self.is_virtual else time.monotonic
 
-    async def sleep_until(self, deadline: float, wake: asyncio.Future[None] | None = None) -> None:
+    async def sleep_until(self, deadline: float, wake: asyncio.Future[Any] | None = None) -> None:
         """Return at (never before) ``deadline`` on this clock, or as soon as ``wake`` is done.
 
         ``wake`` lets another thread or a signal handler cut the wait short (``Vehicle.stop()`` completes it
-        with ``loop.call_soon_threadsafe``). On the virtual loop the timer is armed at exactly ``deadline`` so
-        no float error accumulates. On a real loop we sleep on the loop's timer until just before the
-        deadline and then yield until it has passed, which keeps lateness well under a millisecond on
-        uvloop, whose timers round to whole milliseconds.
+        with ``loop.call_soon_threadsafe``). This is a one-off wait on a fresh :class:`DeadlineWaiter`, closed
+        on return; a task that waits again and again should keep its own waiter.
         """
-        loop = self._loop
-        if self.is_virtual:
-            if deadline <= loop.time():
-                await asyncio.sleep(0)
-                return
-            fut = wake if wake is not None else loop.create_future()
-            handle = loop.call_at(deadline, _set_done, fut)
-            try:
-                await fut
-            finally:
-                handle.cancel()
-            return
-        now = time.monotonic
-        remaining = deadline - now()
-        while remaining > _SPIN_BELOW_S:
-            if wake is not None and wake.done():
-                return
-            fut = loop.create_future()
-            handle = loop.call_later(remaining - _SPIN_BELOW_S, _set_done, fut)
-            if wake is not None:
-                wake.add_done_callback(lambda _w, f=fut: _set_done(f))
-            try:
-                await fut
-            finally:
-                handle.cancel()
-            remaining = deadline - now()
-        while now() < deadline:
-            if wake is not None and wake.done():
-                return
-            await asyncio.sleep(0)
+        with DeadlineWaiter(self._loop) as waiter:
+            await waiter.wait_until(deadline, wake)
 
     async def sleep(self, seconds: float) -> None:
         """Sleep ``seconds`` from now on this clock."""

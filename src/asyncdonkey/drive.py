@@ -20,7 +20,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .clock import Clock
+from .clock import Clock, DeadlineWaiter, Schedule
 from .errors import PartError
 from .memory import Memory
 from .pipeline import after_store, build_pipelines
@@ -39,7 +39,6 @@ logger = logging.getLogger("asyncdonkey.loop")
 
 #: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
 _TIME_EPS = 1e-9
-_TICK_EPS = 1e-6  # in periods: a deadline this close to `now` counts as passed
 
 
 class Drive:
@@ -56,6 +55,7 @@ class Drive:
         *,
         stop_grace_s: float,
         block_report_s: float,
+        precise: bool = False,
     ) -> None:
         self.entries = entries
         self.mem = mem
@@ -69,6 +69,8 @@ class Drive:
         self.stop_requested = False
         self.stop_reason = ""
         self._wake: asyncio.Future[None] | None = None
+        #: waits for every tick's deadline (one OS timer per drive); closed by Vehicle.run() when the ticks end
+        self.waiter = DeadlineWaiter(loop, precise=precise)
         self._grace_handle: asyncio.TimerHandle | None = None
         # background work owned by this run
         self.tasks: list[tuple[Entry, asyncio.Task[Any]]] = []
@@ -238,20 +240,23 @@ class Drive:
         t0 = now()
         self.first_start = self.last_start = self.last_end = t0
         end_at = None if duration is None else t0 + duration
-        k = 0
+        sched = Schedule(rate_hz, t0)
+        waiter = self.waiter
         while not self.stop_requested:
             if max_loop_count is not None and self.loops >= max_loop_count:
                 self.stop_reason = self.stop_reason or "max_loop_count"
                 break
-            deadline = t0 + k / rate_hz
+            deadline = sched.deadline
             if end_at is not None and deadline >= end_at:
                 self.stop_reason = self.stop_reason or "duration"
                 break
             if now() < deadline:
-                self._wake = wake = loop.create_future()
-                if self.stop_requested:  # stop() raced with the new future
-                    break
-                await clock.sleep_until(deadline, wake)
+                wake = self._wake
+                if wake is None:  # one per drive: a stop request completes it, and then the drive ends
+                    self._wake = wake = loop.create_future()
+                    if self.stop_requested:  # stop() raced with the new future
+                        break
+                await waiter.wait_until(deadline, wake)
                 if self.stop_requested:
                     break
             start = now()
@@ -326,13 +331,8 @@ class Drive:
             tick_rec(dur)
             if verbose and report_every and self.loops % report_every == 0:
                 logger.info("%s", profiler.table())
-            k += 1
-            # more than a period behind: skip the missed deadlines instead of bursting to catch up
-            # (float noise of a few ulps is neither "behind" nor "not yet passed")
-            if end - (t0 + k / rate_hz) > period + _TIME_EPS:
-                behind_k = math.floor((end - t0) * rate_hz + _TICK_EPS)
-                self.skipped += behind_k - k
-                k = behind_k
+            # more than a period behind: the missed deadlines are skipped and counted, never burst
+            self.skipped += sched.advance(end)
         self.stop_reason = self.stop_reason or "stop()"
 
     def _part_failed(self, e: Entry, tick: int, exc: Exception, now: float) -> None:

@@ -265,6 +265,7 @@ class Vehicle:
         verbose: bool = False,
         report_every: int = 200,
         stop_grace_s: float = 1.0,
+        precise: bool = False,
     ) -> DriveReport:
         """Drive until ``max_loop_count`` ticks, ``duration`` seconds, :meth:`stop` or cancellation.
 
@@ -274,6 +275,9 @@ class Vehicle:
         vehicle down before the ``CancelledError`` propagates. Raises :class:`PartError` (with the report as
         ``.report``) when a part with ``on_error="stop"`` fails. After a stop request, an awaited part that has
         not returned within ``stop_grace_s`` is cancelled, so a stop always ends the drive.
+
+        ``precise=True`` spins the last stretch before each deadline (a window learned from the observed
+        wake-up latency, see :class:`~asyncdonkey.clock.DeadlineWaiter`): tighter ticks for some CPU.
         """
         if not (isinstance(rate_hz, int | float) and rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"Vehicle.run: rate_hz must be a positive number, got {rate_hz!r}")
@@ -299,6 +303,7 @@ class Vehicle:
             report,
             stop_grace_s=float(stop_grace_s),
             block_report_s=self.block_report_s,
+            precise=bool(precise),
         )
         self._drive = drive
         if self._pending_stop is not None:
@@ -314,6 +319,7 @@ class Vehicle:
             outcome = exc
             report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
         self.on = drive.on = False
+        drive.waiter.close()
         drive.unsubscribe_push_sources()
         try:
             cancelled = await shutdown_drive(drive)
@@ -415,6 +421,7 @@ class Vehicle:
         *,
         duration: float | None = None,
         use_uvloop: bool = True,
+        precise: bool = False,
     ) -> tuple[int, float]:
         """Donkeycar's blocking entry point: drive on a new event loop and return ``(loops, seconds)``.
 
@@ -423,7 +430,7 @@ class Vehicle:
         logged) within a bounded time even if a part hangs; a second one exits at once with status 130.
         """
         report = run_blocking(
-            self.run_with_signals(rate_hz, max_loop_count, duration=duration, verbose=verbose),
+            self.run_with_signals(rate_hz, max_loop_count, duration=duration, verbose=verbose, precise=precise),
             use_uvloop=use_uvloop,
         )
         return report.loops, report.elapsed_s

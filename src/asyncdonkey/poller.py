@@ -1,26 +1,40 @@
 """Hardware pollers: a blocking read called at its own rate off the event loop thread.
 
 An IMU read over I2C or a camera grab blocks for milliseconds; doing it inside the tick (as Donkeycar's
-non-threaded parts do) delays every part after it. A :class:`Poller` calls the read in an executor on its own
-deadline schedule and publishes each result into a :class:`~asyncdonkey.latest.Latest` cell. The tick reads
-the newest value without waiting and can see how old it is.
+non-threaded parts do) delays every part after it. A :class:`Poller` calls the read off the loop on its own
+:class:`~asyncdonkey.clock.Schedule` (the drive loop's deadline rule) and publishes each result into a
+:class:`~asyncdonkey.latest.Latest` cell. The tick reads the newest value without waiting and can see how old
+it is.
 
 Add a poller to a vehicle like any part: its ``async update()`` runs as a background task and ``run()``
 returns the newest value (``None`` until the first read succeeds)::
 
     imu = Poller(mpu.read, rate_hz=60, name="imu")
     vehicle.add(imu, outputs=["imu/sample"])
+
+How it runs, and why:
+
+* **On a real loop** the poller is its own thread, sleeping to absolute deadlines of the runtime clock
+  (``time.monotonic()``) and calling ``read()`` directly. Waking on the event loop and handing every read to an
+  executor costs two thread hand-offs and several loop passes per sample, more than the wait itself; the
+  thread costs one wake-up per sample. The sleep is a timed acquire of a lock that :meth:`Poller.shutdown`
+  releases, so stopping does not wait for the end of a period.
+* **On the virtual clock** it waits on exact loop timers and reads through a one-thread executor, whose work
+  the virtual loop waits for without moving time: a read takes no virtual time and samples land exactly on
+  their deadlines, run after run.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
+import threading
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-from .clock import get_clock
+from .clock import Clock, DeadlineWaiter, Schedule, get_clock
 from .latest import Latest, Sample
 from .ratelimit import LogThrottle
 
@@ -34,9 +48,10 @@ class Poller(Generic[T]):
     """Calls ``read()`` ``rate_hz`` times a second in a worker thread and keeps the newest result.
 
     * Deadline-based like the drive loop (no drift); a read longer than a period makes the next one start at
-      once, and missed deadlines are skipped (``.skipped``), never burst.
+      once, and when more than a period behind the missed deadlines are skipped (``.skipped``), never burst.
     * A read that raises is counted in ``.errors`` and logged at most once per second; polling goes on.
-    * Each poller owns one worker thread, so a slow device cannot starve other executor users.
+    * Each poller owns one worker thread (named ``poll:<name>``), so a slow device cannot starve other
+      executor users.
     """
 
     def __init__(self, read: Callable[[], T], rate_hz: float, name: str | None = None) -> None:
@@ -54,7 +69,7 @@ class Poller(Generic[T]):
         self.last_error: BaseException | None = None
         self._origin: float | None = None
         self._running = False
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._stop_lock: threading.Lock | None = None
         self._log = LogThrottle(1.0)
 
     @property
@@ -75,46 +90,107 @@ class Poller(Generic[T]):
     async def update(self) -> None:
         loop = asyncio.get_running_loop()
         clock = get_clock(loop)
-        now = clock.now
         self._running = True
-        self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"poll:{self.name}")
-        period = 1.0 / self.rate_hz
-        t0 = now()
-        k = 0
         try:
-            while self._running:
-                deadline = t0 + k / self.rate_hz
-                if now() < deadline:
-                    await clock.sleep_until(deadline)
-                if not self._running:
-                    break
-                try:
-                    value = await loop.run_in_executor(self._executor, self.read)
-                except Exception as exc:
-                    self.errors += 1
-                    self.last_error = exc
-                    t = now()
-                    if self._log.allow("read", t):
-                        held = self._log.take_suppressed("read")
-                        logger.warning(
-                            "poller %r: read failed (%d errors so far%s): %r",
-                            self.name,
-                            self.errors,
-                            f", {held} not logged" if held else "",
-                            exc,
-                        )
-                else:
-                    self.latest.publish(value, now())
-                    self.reads += 1
-                k += 1
-                end = now()
-                if end - (t0 + k / self.rate_hz) > period:
-                    behind = int((end - t0) * self.rate_hz)
-                    self.skipped += behind - k
-                    k = behind
+            if clock.is_virtual:
+                await self._poll_on_loop(loop, clock)
+            else:
+                await self._poll_in_thread(loop, clock)
         finally:
             self._running = False
-            self._executor.shutdown(wait=False, cancel_futures=True)
 
     def shutdown(self) -> None:
         self._running = False
+        lock = self._stop_lock
+        if lock is not None:
+            with contextlib.suppress(RuntimeError):  # already released: shutdown() twice
+                lock.release()
+
+    # ------------------------------------------------------------------------------ real loop: a thread
+    async def _poll_in_thread(self, loop: asyncio.AbstractEventLoop, clock: Clock) -> None:
+        done: asyncio.Future[None] = loop.create_future()
+        # held while polling: the thread's timed acquire is its sleep, shutdown() releases it to wake it
+        stop = self._stop_lock = threading.Lock()
+        stop.acquire()
+        thread = threading.Thread(
+            target=self._thread_main, args=(clock, loop, done), name=f"poll:{self.name}", daemon=True
+        )
+        thread.start()
+        try:
+            await done
+        finally:
+            self.shutdown()  # cancelled: the thread ends after its current read
+
+    def _thread_main(self, clock: Clock, loop: asyncio.AbstractEventLoop, done: asyncio.Future[None]) -> None:
+        now = clock.now
+        stop = self._stop_lock
+        assert stop is not None
+        read = self.read
+        publish = self.latest.publish
+        sched = Schedule(self.rate_hz, now())
+        try:
+            while self._running:
+                deadline = sched.deadline
+                t = now()
+                while t < deadline:  # a timeout of at least the remaining time: never early
+                    if stop.acquire(timeout=deadline - t):
+                        return
+                    t = now()
+                if not self._running:
+                    return
+                try:
+                    value = read()
+                except Exception as exc:
+                    self._read_failed(exc, now())
+                else:
+                    publish(value, now())
+                    self.reads += 1
+                if sched.advance(now()):
+                    self.skipped = sched.skipped
+        finally:
+            with contextlib.suppress(RuntimeError):  # the loop is already closed: nobody is waiting
+                loop.call_soon_threadsafe(_set_done, done)
+
+    # ---------------------------------------------------------------- virtual clock: timers + executor
+    async def _poll_on_loop(self, loop: asyncio.AbstractEventLoop, clock: Clock) -> None:
+        now = clock.now
+        executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"poll:{self.name}")
+        waiter = DeadlineWaiter(loop)
+        sched = Schedule(self.rate_hz, now())
+        try:
+            while self._running:
+                deadline = sched.deadline
+                if now() < deadline:
+                    await waiter.wait_until(deadline)
+                if not self._running:
+                    break
+                try:
+                    value = await loop.run_in_executor(executor, self.read)
+                except Exception as exc:
+                    self._read_failed(exc, now())
+                else:
+                    self.latest.publish(value, now())
+                    self.reads += 1
+                if sched.advance(now()):
+                    self.skipped = sched.skipped
+        finally:
+            waiter.close()
+            executor.shutdown(wait=False, cancel_futures=True)
+
+    def _read_failed(self, exc: Exception, t: float) -> None:
+        self.errors += 1
+        self.last_error = exc
+        if self._log.allow("read", t):
+            held = self._log.take_suppressed("read")
+            logger.warning(
+                "poller %r: read failed (%d errors so far%s): %r",
+                self.name,
+                self.errors,
+                f", {held} not logged" if held else "",
+                exc,
+            )
+
+
+def _set_done(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)

@@ -1,0 +1,119 @@
+"""Linux ``timerfd`` on ``CLOCK_MONOTONIC``: a file descriptor that becomes readable at an absolute deadline.
+
+Why a timerfd: it takes the deadline in nanoseconds on the very clock ``time.monotonic()`` reads, as an absolute
+time (``TFD_TIMER_ABSTIME``), so there is no "sleep for the remaining time" arithmetic to round or race, and
+no timer slack is applied to it (``poll``/``epoll`` timeouts, ``nanosleep`` and futex waits get the thread's
+50 µs slack; a timerfd's hrtimer fires on time). The event loop watches it like any socket (``add_reader``),
+which works on asyncio's selector loops and on uvloop alike, and uvloop's own timers (whole milliseconds) are
+bypassed.
+
+Python 3.13 has ``os.timerfd_create`` / ``os.timerfd_settime_ns``; on 3.11 and 3.12 the same two libc calls go
+through ``ctypes``. :data:`AVAILABLE` is false where neither exists (not Linux, or a libc without them); callers
+then fall back to the loop's timers. Creating one can still fail at run time (a sandbox that forbids the
+syscall): :func:`create` raises ``OSError`` then, and the caller falls back the same way.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+from collections.abc import Callable
+
+__all__ = ["AVAILABLE", "Timerfd"]
+
+CLOCK_MONOTONIC = 1
+TFD_TIMER_ABSTIME = 1
+TFD_NONBLOCK = os.O_NONBLOCK
+TFD_CLOEXEC = getattr(os, "O_CLOEXEC", 0o2000000)
+
+
+class _Timespec(ctypes.Structure):
+    # time_t and long are both the C long of the platform on Linux's classic ABIs (64-bit, and 32-bit ARM)
+    _fields_ = (("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long))
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = (("it_interval", _Timespec), ("it_value", _Timespec))
+
+
+def _libc_functions() -> tuple[Callable[..., int], Callable[..., int]] | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        create, settime = libc.timerfd_create, libc.timerfd_settime
+    except (OSError, AttributeError):
+        return None
+    create.argtypes = (ctypes.c_int, ctypes.c_int)
+    create.restype = ctypes.c_int
+    settime.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Itimerspec), ctypes.POINTER(_Itimerspec))
+    settime.restype = ctypes.c_int
+    return create, settime
+
+
+_OS_NATIVE = hasattr(os, "timerfd_create") and hasattr(os, "timerfd_settime_ns")
+_LIBC = None if _OS_NATIVE else _libc_functions()
+
+#: True where a timerfd can be created at all (Linux with Python ≥ 3.13, or a libc exporting timerfd_*).
+AVAILABLE: bool = _OS_NATIVE or _LIBC is not None
+
+
+class Timerfd:
+    """One non-blocking, close-on-exec timerfd on ``CLOCK_MONOTONIC``, armed at absolute deadlines.
+
+    Arming again replaces the previous deadline and clears a pending expiry (the kernel resets the expiry
+    count on ``timerfd_settime``), so a stale readiness seen after re-arming reads as "not fired".
+    """
+
+    __slots__ = ("_arm", "_spec", "fd")
+
+    def __init__(self) -> None:
+        if _OS_NATIVE:
+            self.fd: int = os.timerfd_create(CLOCK_MONOTONIC, flags=TFD_NONBLOCK | TFD_CLOEXEC)
+            fd = self.fd
+            settime_ns = os.timerfd_settime_ns
+
+            def arm_native(deadline_ns: int) -> None:
+                settime_ns(fd, flags=TFD_TIMER_ABSTIME, initial=deadline_ns)
+
+            self._arm: Callable[[int], None] = arm_native
+            return
+        if _LIBC is None:
+            raise OSError("timerfd is not available on this platform")
+        create, settime = _LIBC
+        fd = create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC)
+        if fd < 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"timerfd_create(CLOCK_MONOTONIC): {os.strerror(err)}")
+        self.fd = fd
+        # one itimerspec, filled in place on every arm: no allocation per deadline
+        spec = self._spec = _Itimerspec()
+        value = spec.it_value
+        spec_ref = ctypes.byref(spec)
+
+        def arm_libc(deadline_ns: int) -> None:
+            value.tv_sec, value.tv_nsec = divmod(deadline_ns, 1_000_000_000)
+            if settime(fd, TFD_TIMER_ABSTIME, spec_ref, None) != 0:
+                err = ctypes.get_errno()
+                raise OSError(err, f"timerfd_settime(fd {fd}): {os.strerror(err)}")
+
+        self._arm = arm_libc
+
+    def arm(self, deadline_ns: int) -> None:
+        """Fire once when ``CLOCK_MONOTONIC`` reaches ``deadline_ns`` (absolute); 0 disarms."""
+        self._arm(deadline_ns)
+
+    def fired(self) -> bool:
+        """Consume a pending expiry: True if the timer fired since it was last armed."""
+        try:
+            os.read(self.fd, 8)
+        except BlockingIOError:
+            return False
+        return True
+
+    def close(self) -> None:
+        fd, self.fd = self.fd, -1
+        if fd >= 0:
+            os.close(fd)

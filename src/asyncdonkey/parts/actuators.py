@@ -48,7 +48,7 @@ import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from ..clock import Clock, get_clock
+from ..clock import Clock, DeadlineWaiter, get_clock
 from ..hw.i2c import I2CBusRegistry
 from ..hw.pca9685 import PWMChannel, open_pwm_channel
 from ..hw.pinspec import PCA9685Pin
@@ -294,6 +294,7 @@ class _PWMPart:
         clock = get_clock(loop)
         self._now = clock.now
         self._running = True
+        waiter = DeadlineWaiter(loop)  # one OS timer for every wait of this writer
         try:
             await self._before_driving(clock)
             while self._running:
@@ -309,8 +310,9 @@ class _PWMPart:
                 if recheck_at == math.inf:
                     await wake
                 else:
-                    await clock.sleep_until(recheck_at, wake)
+                    await waiter.wait_until(recheck_at, wake)
         finally:
+            waiter.close()
             self._running = False
             self._wake = None
             self._writer_deadline = math.inf

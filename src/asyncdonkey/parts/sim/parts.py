@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ...clock import Clock, get_clock
+from ...clock import Clock, DeadlineWaiter, get_clock
 from ...latest import Latest
 from .physics import clean_command
 from .simulator import Simulator, Telemetry
@@ -142,10 +142,11 @@ class SimCar:
         self._anchor, self._steps = t0, 0
         self._publish(t0)
         period_k = 1
+        waiter = DeadlineWaiter()  # one OS timer for every frame
         try:
             while self._running:
                 deadline = t0 + period_k / self.camera_hz
-                await clock.sleep_until(deadline)
+                await waiter.wait_until(deadline)
                 now = clock.now()
                 due = math.floor((now - t0) * self.camera_hz + 1e-9)
                 if due > period_k:
@@ -157,6 +158,7 @@ class SimCar:
                 self._publish(deadline)
                 period_k += 1
         finally:
+            waiter.close()
             self._running = False
 
     def _publish(self, t: float) -> None:

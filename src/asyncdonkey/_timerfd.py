@@ -19,6 +19,7 @@ import ctypes
 import ctypes.util
 import os
 import sys
+from array import array
 from collections.abc import Callable
 
 __all__ = ["AVAILABLE", "Timerfd"]
@@ -27,15 +28,6 @@ CLOCK_MONOTONIC = 1
 TFD_TIMER_ABSTIME = 1
 TFD_NONBLOCK = os.O_NONBLOCK
 TFD_CLOEXEC = getattr(os, "O_CLOEXEC", 0o2000000)
-
-
-class _Timespec(ctypes.Structure):
-    # time_t and long are both the C long of the platform on Linux's classic ABIs (64-bit, and 32-bit ARM)
-    _fields_ = (("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long))
-
-
-class _Itimerspec(ctypes.Structure):
-    _fields_ = (("it_interval", _Timespec), ("it_value", _Timespec))
 
 
 def _libc_functions() -> tuple[Callable[..., int], Callable[..., int]] | None:
@@ -48,7 +40,9 @@ def _libc_functions() -> tuple[Callable[..., int], Callable[..., int]] | None:
         return None
     create.argtypes = (ctypes.c_int, ctypes.c_int)
     create.restype = ctypes.c_int
-    settime.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Itimerspec), ctypes.POINTER(_Itimerspec))
+    # struct itimerspec is four C longs (time_t and long are both the platform's long on Linux's classic ABIs,
+    # 64-bit and 32-bit ARM alike); it is passed as the address of an array('l'), see Timerfd
+    settime.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
     settime.restype = ctypes.c_int
     return create, settime
 
@@ -88,14 +82,14 @@ class Timerfd:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_create(CLOCK_MONOTONIC): {os.strerror(err)}")
         self.fd = fd
-        # one itimerspec, filled in place on every arm: no allocation per deadline
-        spec = self._spec = _Itimerspec()
-        value = spec.it_value
-        spec_ref = ctypes.byref(spec)
+        # one itimerspec {interval sec, nsec; value sec, nsec}, filled in place on every arm: an array item
+        # store is much cheaper than a ctypes Structure field, and nothing is allocated per deadline
+        spec = self._spec = array("l", bytes(4 * array("l").itemsize))
+        address = spec.buffer_info()[0]
 
         def arm_libc(deadline_ns: int) -> None:
-            value.tv_sec, value.tv_nsec = divmod(deadline_ns, 1_000_000_000)
-            if settime(fd, TFD_TIMER_ABSTIME, spec_ref, None) != 0:
+            spec[2], spec[3] = divmod(deadline_ns, 1_000_000_000)
+            if settime(fd, TFD_TIMER_ABSTIME, address, None) != 0:
                 err = ctypes.get_errno()
                 raise OSError(err, f"timerfd_settime(fd {fd}): {os.strerror(err)}")
 

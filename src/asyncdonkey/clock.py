@@ -105,12 +105,91 @@ _LATE_QUANTILE = 0.995
 _LATE_REFRESH = 32  # recompute the window every this many samples
 _WINDOW_MARGIN = 1.25  # the window is the quantile times this ...
 _WINDOW_FLOOR_S = 20e-6  # ... at least this (the spin's own check-to-start cost) ...
-_WINDOW_CEIL_S = 5e-3  # ... and at most this, whatever a loaded machine reports
+_WINDOW_CEIL_S = 5e-3  # ... and at most this, whatever a loaded machine reports ...
+#: ... and at most this fraction of the time between successive deadlines: a loaded machine's preemption
+#: outliers cannot be spun away, and chasing them would make precise mode spin for a large part of each period.
+SPIN_BUDGET = 0.03
 _WINDOW_START_S = 1e-3  # until the first samples are in
 
 #: Set to False to keep waits off timerfd (tests force the fallback this way; it is also the escape hatch for a
 #: kernel or sandbox where timerfd misbehaves).
 USE_TIMERFD = True
+
+
+class _Wakeup:
+    """A reusable awaitable for one waiting task: what an ``asyncio.Future`` does for a wait, minus the Future.
+
+    A wait on a real loop would otherwise allocate a Future, and completing it schedules the task's wake-up as
+    one more callback for the next loop pass. This object speaks the Future protocol the task needs
+    (``_asyncio_future_blocking``, ``get_loop``, ``add_done_callback``, ``result``, ``cancel``; see
+    :func:`asyncio.isfuture`) and is re-armed for every wait. :meth:`fire`, called from the timer's own loop
+    callback, resumes the task in that same loop pass; a wake-up requested while a task is running (or a
+    cancellation) goes through ``call_soon`` like a Future's would.
+    """
+
+    __slots__ = ("_asyncio_future_blocking", "_callback", "_cancelled", "_context", "_loop")
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._asyncio_future_blocking = False
+        self._callback: Callable[[Any], object] | None = None
+        self._context: Any = None
+        self._cancelled = False
+
+    # the part of the Future protocol a Task uses
+    def get_loop(self) -> asyncio.AbstractEventLoop:
+        return self._loop
+
+    def add_done_callback(self, fn: Callable[[Any], object], *, context: Any = None) -> None:
+        self._callback, self._context = fn, context
+
+    def remove_done_callback(self, fn: Callable[[Any], object]) -> int:
+        if self._callback is fn:
+            self._callback = self._context = None
+            return 1
+        return 0
+
+    def done(self) -> bool:
+        return self._callback is None
+
+    def cancelled(self) -> bool:
+        return self._cancelled
+
+    def result(self) -> None:
+        if self._cancelled:
+            raise asyncio.CancelledError()
+
+    def cancel(self, msg: Any = None) -> bool:
+        if self._callback is None:
+            return False
+        self._cancelled = True
+        self.fire()
+        return True
+
+    def __await__(self) -> Any:
+        self._cancelled = False
+        self._asyncio_future_blocking = True
+        yield self
+        self.result()
+
+    # ours
+    @property
+    def waiting(self) -> bool:
+        return self._callback is not None
+
+    def fire(self) -> None:
+        """Resume the waiting task (no-op if none): at once from a plain loop callback, else on the next pass."""
+        cb, ctx = self._callback, self._context
+        if cb is None:
+            return
+        self._callback = self._context = None
+        loop = self._loop
+        if self._cancelled or asyncio.current_task(loop) is not None:
+            loop.call_soon(cb, self, context=ctx)
+        elif ctx is not None:
+            ctx.run(cb, self)
+        else:
+            cb(self)
 
 
 class DeadlineWaiter:
@@ -128,8 +207,8 @@ class DeadlineWaiter:
 
     __slots__ = (
         "__weakref__",
-        "_fut",
         "_handle",
+        "_last_deadline",
         "_late",
         "_late_n",
         "_loop",
@@ -138,6 +217,8 @@ class DeadlineWaiter:
         "_on_wake_cb",
         "_tfd",
         "_timer_slop",
+        "_wakeup",
+        "_watched",
         "mode",
         "precise",
         "spin_window_s",
@@ -149,7 +230,8 @@ class DeadlineWaiter:
         clock = get_clock(loop)
         self._loop = loop
         self._now = clock.now
-        self._fut: asyncio.Future[None] | None = None
+        self._wakeup = _Wakeup(loop)
+        self._watched: asyncio.Future[Any] | None = None
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._tfd: _timerfd.Timerfd | None = None
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
@@ -159,6 +241,7 @@ class DeadlineWaiter:
         self.spin_window_s = _WINDOW_START_S if self.precise else 0.0
         self._late = array("d")
         self._late_n = 0
+        self._last_deadline = math.inf
         #: Waits that actually slept (the deadline had not passed yet).
         self.waits = 0
         # uvloop's timers count whole milliseconds of a clock cached at the start of each loop pass: arm them
@@ -187,21 +270,21 @@ class DeadlineWaiter:
 
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_timerfd(self, tfd: _timerfd.Timerfd) -> None:
-        if tfd.fired():
-            fut = self._fut
-            if fut is not None and not fut.done():
-                fut.set_result(None)
+        wakeup = self._wakeup
+        if wakeup.waiting:
+            # No read() here: the waiter re-arms (which clears the expiry) before the loop polls again, or
+            # comes back here not waiting and reads it then. One syscall less per wait; a stale readiness
+            # cannot end a wait early, the waiter re-checks the clock.
+            wakeup.fire()
+        else:
+            tfd.fired()
 
     def _on_loop_timer(self) -> None:
         self._handle = None
-        fut = self._fut
-        if fut is not None and not fut.done():
-            fut.set_result(None)
+        self._wakeup.fire()
 
     def _on_wake(self, _wake: object) -> None:
-        fut = self._fut
-        if fut is not None and not fut.done():
-            fut.set_result(None)
+        self._wakeup.fire()
 
     # ------------------------------------------------------------------------------------------- waiting
     async def wait_until(self, deadline: float, wake: asyncio.Future[Any] | None = None) -> bool:
@@ -211,7 +294,7 @@ class DeadlineWaiter:
         watched, never completed by the waiter). A deadline already passed returns at once on a real loop and
         after one loop pass on the virtual clock. One wait at a time per waiter.
         """
-        if self._fut is not None:
+        if self._wakeup.waiting:
             raise RuntimeError("DeadlineWaiter.wait_until: this waiter is already waiting (one task per waiter)")
         if self.mode == "virtual":
             return await self._wait_virtual(deadline, wake)
@@ -222,19 +305,26 @@ class DeadlineWaiter:
         if t >= deadline:
             return True
         self.waits += 1
-        target = deadline - self.spin_window_s if self.precise else deadline
+        if self.precise:
+            gap, self._last_deadline = deadline - self._last_deadline, deadline
+            window = self.spin_window_s
+            if gap > 0 and window > gap * SPIN_BUDGET:
+                window = gap * SPIN_BUDGET
+            target = deadline - window
+        else:
+            target = deadline
         if t < target:
-            loop = self._loop
-            if wake is not None:
+            wakeup = self._wakeup
+            if wake is not None and wake is not self._watched:
+                # Watched once, not added and removed around every wait: a drive passes the same wake future
+                # for thousands of ticks. A future watched earlier that completes later only causes a
+                # spurious wake-up, and the loop below goes back to sleep.
                 wake.add_done_callback(self._on_wake_cb)
+                self._watched = wake
             try:
                 while True:
-                    fut = self._fut = loop.create_future()
                     self._arm(target, t)
-                    try:
-                        await fut
-                    finally:
-                        self._fut = None
+                    await wakeup
                     if wake is not None and wake.done():
                         self._disarm()
                         return False
@@ -244,9 +334,6 @@ class DeadlineWaiter:
             except BaseException:
                 self._disarm()
                 raise
-            finally:
-                if wake is not None:
-                    wake.remove_done_callback(self._on_wake_cb)
             if self.precise:
                 self._learn(t - target)
         while t < deadline:  # precise mode only: the last stretch is spun on the clock
@@ -283,17 +370,16 @@ class DeadlineWaiter:
         if wake is not None and wake.done():
             return False
         self.waits += 1
-        fut = self._fut = loop.create_future()
-        handle = loop.call_at(deadline, _set_done, fut)  # exactly at the deadline: no float error accumulates
+        handle = loop.call_at(deadline, self._on_loop_timer_cb)  # exact: no float error accumulates
         if wake is not None:
             wake.add_done_callback(self._on_wake_cb)
         try:
-            await fut
+            await self._wakeup
         finally:
-            self._fut = None
             handle.cancel()
             if wake is not None:
                 wake.remove_done_callback(self._on_wake_cb)
+            self._watched = None
         return not (wake is not None and wake.done() and loop.time() < deadline)
 
     def _learn(self, late: float) -> None:
@@ -325,10 +411,8 @@ class DeadlineWaiter:
         if not loop.is_closed():
             with contextlib.suppress(Exception):
                 loop.remove_reader(tfd.fd)
-        fut = self._fut
-        if fut is not None and not fut.done():
-            fut.set_result(None)  # a wait in progress returns (it re-checks the clock, see below)
         tfd.close()
+        self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers
 

@@ -1,0 +1,387 @@
+"""Deadline waits on real loops: timerfd and the loop-timer fallback, wake-ups, precise mode, no fd leaks.
+
+These run in real time on asyncio's loop and on uvloop, so they assert only what a noisy 2-core machine can
+guarantee: a wait never returns before its deadline, it is late by less than a generous bound, ``wake`` cuts it
+short promptly, and nothing is left open afterwards. Figures (lateness percentiles, CPU) live in
+``benchmarks/loop.py``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import os
+import statistics
+import threading
+import time
+from collections.abc import Awaitable, Callable
+
+import pytest
+import uvloop
+
+from asyncdonkey import Poller, Vehicle, _timerfd, clock
+from asyncdonkey.clock import DeadlineWaiter, get_clock
+
+LOOPS = [
+    pytest.param(asyncio.SelectorEventLoop, id="asyncio"),
+    pytest.param(uvloop.new_event_loop, id="uvloop"),
+]
+GENEROUS_S = 0.5  # no single wait on a busy CI machine should be later than this
+
+
+def run_on(loop_factory: Callable[[], asyncio.AbstractEventLoop], coro: Awaitable[object]) -> object:
+    with asyncio.Runner(loop_factory=loop_factory) as runner:
+        return runner.run(coro)  # type: ignore[arg-type]
+
+
+def open_fds() -> set[int]:
+    return {int(fd) for fd in os.listdir("/proc/self/fd")}
+
+
+@pytest.fixture(params=["timerfd", "loop-timer"])
+def wait_mode(request, monkeypatch) -> str:
+    """Every real-time test runs on timerfd (where the platform has it) and on the forced fallback."""
+    if request.param == "timerfd":
+        if not _timerfd.AVAILABLE:  # pragma: no cover - CI is Linux
+            pytest.fail("timerfd is expected on Linux")
+    else:
+        monkeypatch.setattr(clock, "USE_TIMERFD", False)
+    return request.param
+
+
+async def _lateness_of_waits(waiter: DeadlineWaiter, n: int, spacing_s: float) -> list[float]:
+    """Wait for n deadlines ``spacing_s`` apart (odd offsets, so none lands on a millisecond); lateness each."""
+    now = time.monotonic
+    t0 = now()
+    late = []
+    for k in range(1, n + 1):
+        deadline = t0 + k * spacing_s + 0.000317 * (k % 3)
+        assert await waiter.wait_until(deadline) is True
+        late.append(now() - deadline)
+    return late
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_waits_never_return_early_and_are_not_far_late(loop_factory, wait_mode):
+    async def main():
+        with DeadlineWaiter() as waiter:
+            assert waiter.mode == wait_mode
+            late = await _lateness_of_waits(waiter, 30, 0.0043)
+            assert 0 < waiter.waits <= 30  # a deadline that had passed on a late wake-up is not slept for
+        assert min(late) >= 0.0  # never early
+        assert max(late) < GENEROUS_S
+        # a typical wait is on time to well within the fallback's documented couple of milliseconds
+        assert statistics.median(late) < 0.02
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_a_deadline_already_passed_returns_at_once(loop_factory, wait_mode):
+    async def main():
+        with DeadlineWaiter() as waiter:
+            t = time.monotonic()
+            assert await waiter.wait_until(t - 1.0) is True
+            assert await waiter.wait_until(time.monotonic()) is True
+            assert waiter.waits == 0  # nothing slept
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_wake_cuts_a_long_wait_short_and_the_waiter_goes_on(loop_factory, wait_mode):
+    async def main():
+        loop = asyncio.get_running_loop()
+        with DeadlineWaiter() as waiter:
+            wake = loop.create_future()
+            loop.call_later(0.02, wake.set_result, None)
+            t = time.monotonic()
+            assert await waiter.wait_until(t + 30.0, wake) is False
+            assert time.monotonic() - t < GENEROUS_S
+            # a wake future already done returns at once; the waiter is still good for the next deadline
+            assert await waiter.wait_until(time.monotonic() + 30.0, wake) is False
+            late = await _lateness_of_waits(waiter, 5, 0.003)
+            assert min(late) >= 0.0
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_wake_from_another_thread_cuts_the_wait_short(loop_factory, wait_mode):
+    async def main():
+        loop = asyncio.get_running_loop()
+        wake = loop.create_future()
+        timer = threading.Timer(0.02, lambda: loop.call_soon_threadsafe(wake.set_result, None))
+        with DeadlineWaiter() as waiter:
+            t = time.monotonic()
+            timer.start()
+            assert await waiter.wait_until(t + 30.0, wake) is False
+            assert time.monotonic() - t < GENEROUS_S
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_same_wake_future_across_many_waits_then_completed(loop_factory, wait_mode):
+    """The drive loop passes one wake future for every tick; completing it ends the current wait only."""
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        wake = loop.create_future()
+        with DeadlineWaiter() as waiter:
+            t0 = time.monotonic()
+            for k in range(1, 11):
+                assert await waiter.wait_until(t0 + k * 0.002, wake) is True
+            loop.call_later(0.01, wake.set_result, None)
+            assert await waiter.wait_until(time.monotonic() + 30.0, wake) is False
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_a_cancelled_wait_raises_and_leaves_the_waiter_usable(loop_factory, wait_mode):
+    async def main():
+        with DeadlineWaiter() as waiter:
+            task = asyncio.create_task(waiter.wait_until(time.monotonic() + 30.0))
+            await asyncio.sleep(0.01)
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            late = await _lateness_of_waits(waiter, 5, 0.003)
+            assert min(late) >= 0.0
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_one_wait_at_a_time_per_waiter(loop_factory):
+    async def main():
+        with DeadlineWaiter() as waiter:
+            first = asyncio.create_task(waiter.wait_until(time.monotonic() + 0.05))
+            await asyncio.sleep(0)
+            with pytest.raises(RuntimeError, match="already waiting"):
+                await waiter.wait_until(time.monotonic() + 0.05)
+            assert await first is True
+
+    run_on(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_closing_during_a_wait_finishes_it_on_the_loop_timers(loop_factory):
+    async def main():
+        waiter = DeadlineWaiter()
+        assert waiter.mode == "timerfd"
+        deadline = time.monotonic() + 0.03
+        task = asyncio.create_task(waiter.wait_until(deadline))
+        await asyncio.sleep(0.005)
+        waiter.close()
+        assert await task is True
+        assert time.monotonic() >= deadline
+        assert waiter.mode == "loop-timer" and waiter.closed
+
+    run_on(loop_factory, main())
+
+
+def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
+    def no_timerfd() -> _timerfd.Timerfd:
+        raise OSError(24, "Too many open files")
+
+    monkeypatch.setattr(_timerfd, "Timerfd", no_timerfd)
+
+    async def main():
+        with DeadlineWaiter() as waiter:
+            assert waiter.mode == "loop-timer"
+            late = await _lateness_of_waits(waiter, 5, 0.003)
+            assert min(late) >= 0.0
+
+    run_on(uvloop.new_event_loop, main())
+
+
+# ---------------------------------------------------------------------------------------------- precise mode
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode):
+    spacing = 0.004
+
+    async def main():
+        with DeadlineWaiter(precise=True) as waiter:
+            start_window = waiter.spin_window_s
+            late = await _lateness_of_waits(waiter, 64, spacing)
+            assert min(late) >= 0.0
+            assert max(late) < GENEROUS_S
+            # the window now comes from what was observed: a high quantile of the early timer's lateness, with
+            # a margin, within the floor and the budget (a share of the time between deadlines)
+            samples = sorted(waiter._late)
+            assert len(samples) > 32
+            q = samples[min(len(samples) - 1, int(clock._LATE_QUANTILE * len(samples)))]
+            expected = min(max(q * clock._WINDOW_MARGIN, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
+            assert waiter.spin_window_s == pytest.approx(expected)
+            assert waiter.spin_window_s != start_window or expected == start_window
+            return late
+
+    run_on(loop_factory, main())
+
+
+def test_precise_spin_stays_within_its_budget_of_the_period():
+    """However late the machine has been waking, the spin before each deadline is at most SPIN_BUDGET of the
+    time between deadlines: a 4 ms window on a 5 ms period would burn most of a core, the budget 3 %."""
+
+    async def main():
+        with DeadlineWaiter(precise=True) as waiter:
+            waiter.spin_window_s = 0.004  # as if a loaded machine had taught it 4 ms
+            now = time.monotonic
+            t0 = now()
+            cpu0 = time.thread_time()
+            for k in range(1, 41):
+                deadline = t0 + k * 0.005
+                await waiter.wait_until(deadline)
+                assert now() >= deadline
+            cpu = time.thread_time() - cpu0
+            wall = now() - t0
+            assert cpu < 0.4 * wall  # spinning 4 ms of every 5 would be about 0.8
+
+    run_on(uvloop.new_event_loop, main())
+
+
+def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
+    v = Vehicle()
+    stamps: list[float] = []
+
+    class Stamp:
+        def run(self):
+            stamps.append(time.monotonic())
+
+    v.add(Stamp())
+    report = asyncio.run(v.run(rate_hz=200, max_loop_count=60, precise=True))
+    assert report.loops == 60 and len(stamps) == 60
+    assert report.lateness_ms["min"] >= 0.0  # no tick started before its deadline
+    assert report.lateness_ms["50%"] < 50.0
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_precise_mode_on_the_virtual_clock_is_the_exact_timer():
+    v = Vehicle()
+    times: list[float] = []
+
+    class Stamp:
+        def run(self):
+            times.append(asyncio.get_running_loop().time())
+
+    v.add(Stamp())
+    await v.run(rate_hz=50, max_loop_count=100, precise=True)
+    assert times == [times[0] + k / 50 for k in range(100)]
+    assert v.profiler.lateness.max == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- stop()
+@pytest.mark.parametrize("use_uvloop", [False, True], ids=["asyncio", "uvloop"])
+def test_stop_from_a_thread_cuts_a_long_tick_wait_short(use_uvloop):
+    v = Vehicle()
+    v.add(Poller(lambda: 1, rate_hz=50, name="p"), outputs=["p"])
+    timer = threading.Timer(0.1, v.stop)
+    t = time.monotonic()
+    timer.start()
+    loops, _ = v.start(rate_hz=0.2, use_uvloop=use_uvloop)  # a tick every 5 s: stop() must cut the wait
+    assert time.monotonic() - t < 3.0
+    assert loops == 1
+
+
+# ---------------------------------------------------------------------------------------------- leaks
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_no_file_descriptor_left_after_many_waits_sleeps_and_drives(loop_factory):
+    gc.collect()
+    before = open_fds()
+
+    async def main():
+        at_start = open_fds()  # the loop's own descriptors are open by now
+        for _ in range(200):
+            with DeadlineWaiter() as waiter:
+                await waiter.wait_until(time.monotonic() + 0.0001)
+        c = get_clock()
+        for _ in range(200):
+            await c.sleep(0.0001)
+        loop = asyncio.get_running_loop()
+        for _ in range(10):
+            v = Vehicle()
+            v.add(Poller(lambda: 1, rate_hz=500, name="p"), outputs=["p"])
+            loop.call_later(0.01, v.stop)
+            await v.run(rate_hz=400)
+        return open_fds() - at_start
+
+    # nothing accumulates while the loop runs ...
+    assert run_on(loop_factory, main()) == set()
+    gc.collect()
+    # ... and nothing is left once it is closed
+    assert open_fds() - before == set()
+
+
+def test_an_unclosed_waiter_releases_its_timerfd_with_its_loop():
+    gc.collect()
+    before = open_fds()
+
+    async def main():
+        waiter = DeadlineWaiter()
+        await waiter.wait_until(time.monotonic() + 0.001)
+        return waiter.mode
+
+    assert run_on(uvloop.new_event_loop, main()) == "timerfd"
+    gc.collect()
+    assert open_fds() - before == set()
+
+
+# ---------------------------------------------------------------------------------------------- the poller
+def test_poller_reads_in_its_own_thread_on_a_real_loop_and_stops_promptly():
+    names: list[str] = []
+    stamps: list[float] = []
+
+    def read():
+        names.append(threading.current_thread().name)
+        stamps.append(time.monotonic())
+        return len(stamps)
+
+    async def main():
+        poller = Poller(read, rate_hz=200, name="imu")
+        task = asyncio.create_task(poller.update())
+        await asyncio.sleep(0.2)
+        poller.shutdown()
+        await asyncio.wait_for(task, 1.0)
+        n = poller.reads
+        await asyncio.sleep(0.05)
+        assert poller.reads == n  # no read after shutdown
+        return poller
+
+    poller = run_on(uvloop.new_event_loop, main())
+    assert set(names) == {"poll:imu"}
+    assert 5 <= poller.reads <= 45  # about 40 in 0.2 s; a loaded machine skips, never bursts
+    assert poller.sample is not None and poller.sample.value == poller.reads
+    t0 = stamps[0]
+    assert all(t - (t0 + k / 200) >= -1e-6 for k, t in enumerate(stamps) if k < 2)  # the first reads on time
+    deadline = time.monotonic() + 1.0
+    while any(t.name == "poll:imu" for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not any(t.name == "poll:imu" for t in threading.enumerate())
+
+
+def test_poller_thread_counts_errors_and_skips_when_reads_overrun():
+    n = {"i": 0}
+
+    def slow_flaky():
+        n["i"] += 1
+        time.sleep(0.025)  # longer than two 10 ms periods: deadlines are skipped, not burst
+        if n["i"] % 2 == 0:
+            raise OSError(121, "Remote I/O error")
+        return n["i"]
+
+    async def main():
+        poller = Poller(slow_flaky, rate_hz=100, name="slow")
+        task = asyncio.create_task(poller.update())
+        await asyncio.sleep(0.3)
+        poller.shutdown()
+        await asyncio.wait_for(task, 1.0)
+        return poller
+
+    poller = run_on(uvloop.new_event_loop, main())
+    assert poller.errors >= 2 and poller.reads >= 2
+    assert abs(poller.errors - poller.reads) <= 1
+    assert poller.skipped >= poller.reads  # every slow read skips at least one deadline
+    assert isinstance(poller.last_error, OSError)

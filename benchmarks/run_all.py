@@ -91,11 +91,31 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
     rows: list[Row] = []
     for rate in ("20", "100", "1000"):
         ours, dk = _get(d, "rates", rate, "ours") or {}, _get(d, "rates", rate, "donkeycar") or {}
+        precise = _get(d, "rates", rate, "ours_precise") or {}
         o, t = ours.get("rate_error_ppm"), dk.get("rate_error_ppm")
         shown = "< 1" if o is not None and abs(o) < 1 else _fmt(o, 0)  # below the run's resolution
         rows.append((f"loop {rate} Hz", "rate error (ppm)", shown, _fmt(t, 0), _ratio(o, t, floor=1.0)))
         o, t = ours.get("lateness_p99_ms"), dk.get("lateness_p99_ms")
         rows.append((f"loop {rate} Hz", "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+        o = ours.get("cpu_pct")
+        rows.append(
+            (f"loop {rate} Hz", "CPU (% of a core)", _fmt(o), _fmt(dk.get("cpu_pct")), _ratio(o, dk.get("cpu_pct")))
+        )
+        if precise:
+            o = precise.get("lateness_p99_ms")
+            rows.append((f"loop {rate} Hz", "precise: tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+            o = precise.get("cpu_pct")
+            rows.append(
+                (
+                    f"loop {rate} Hz",
+                    "precise: CPU (% of a core)",
+                    _fmt(o),
+                    _fmt(dk.get("cpu_pct")),
+                    _ratio(o, dk.get("cpu_pct")),
+                )
+            )
+    o, t = _get(d, "idle_cpu_pct", "ours"), _get(d, "idle_cpu_pct", "donkeycar")
+    rows.append(("loop 20 Hz, no poller", "idle CPU (% of a core)", _fmt(o), _fmt(t), _ratio(o, t)))
     o, t = _get(d, "overhead_us", "ours"), _get(d, "overhead_us", "donkeycar")
     rows.append(("loop", "per-part overhead (µs)", _fmt(o), _fmt(t), _ratio(o, t)))
     return rows

@@ -4,7 +4,7 @@ The public core is small: :class:`Vehicle` (the drive loop), :class:`Memory` (na
 :class:`Poller` (hardware reads at their own rate off the loop thread) and the clock helpers.
 """
 
-from .clock import Clock, get_clock
+from .clock import Clock, DeadlineWaiter, Schedule, get_clock
 from .latest import Latest, Sample
 from .loop import DriveReport, OutputCountError, PartError, PartSpecError, Vehicle
 from .memory import Memory
@@ -15,6 +15,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Clock",
+    "DeadlineWaiter",
     "DriveReport",
     "Latest",
     "Memory",
@@ -23,6 +24,7 @@ __all__ = [
     "PartSpecError",
     "Poller",
     "Sample",
+    "Schedule",
     "Vehicle",
     "VirtualClockLoop",
     "__version__",

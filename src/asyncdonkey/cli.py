@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="jitter warnings, the profiler table every 200 loops, and the traceback of a part failure",
     )
     run.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
+    run.add_argument(
+        "--precise", action="store_true", help="spin the last stretch before each tick: tighter ticks for more CPU"
+    )
     run.epilog = "Arguments after a lone -- are passed to the car's build()."
     try:
         from .replay import add_replay_parser
@@ -174,7 +177,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     try:
         report = run_blocking(
-            vehicle.run_with_signals(rate, args.max_loops, duration=args.duration, verbose=args.verbose),
+            vehicle.run_with_signals(
+                rate, args.max_loops, duration=args.duration, verbose=args.verbose, precise=args.precise
+            ),
             use_uvloop=not args.no_uvloop,
         )
     except PartError as exc:

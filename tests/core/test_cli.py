@@ -100,6 +100,14 @@ def test_run_with_max_loops_and_car_args(tmp_path):
     assert "Part Profile Summary" in proc.stderr and "loops: 7" in proc.stderr
 
 
+def test_run_in_precise_mode_on_uvloop(tmp_path):
+    car = write(tmp_path, "car.py", CAR)
+    marker = tmp_path / "shutdown.txt"
+    proc = run_cli("run", str(car), "--max-loops", "5", "--hz", "100", "--precise", "--", str(marker))
+    assert proc.returncode == 0, proc.stderr
+    assert marker.read_text() == "neutral after 5 ticks"
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_shuts_down_cleanly_with_final_report(tmp_path, sig):
     car = write(tmp_path, "car.py", CAR)

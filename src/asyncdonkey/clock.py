@@ -208,8 +208,8 @@ class DeadlineWaiter:
 
     What a wait costs on Linux: one ``timerfd_settime`` to arm, one ``epoll`` wake-up of the loop, and the
     timer's loop callback resuming the waiting task directly (no Future, no extra loop pass, no ``read()``
-    unless the task was busy elsewhere when the timer fired). Nothing is allocated per wait except the integer
-    nanosecond deadline.
+    unless the task was busy elsewhere when the timer fired). Nothing is allocated per wait beyond a few numbers
+    (the deadline in nanoseconds).
     """
 
     __slots__ = (

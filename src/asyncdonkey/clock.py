@@ -225,6 +225,7 @@ class DeadlineWaiter:
         "_on_wake_cb",
         "_tfd",
         "_timer_slop",
+        "_vfut",
         "_wakeup",
         "_watched",
         "mode",
@@ -239,6 +240,7 @@ class DeadlineWaiter:
         self._loop = loop
         self._now = clock.now
         self._wakeup = _Wakeup(loop)
+        self._vfut: asyncio.Future[None] | None = None
         self._watched: asyncio.Future[Any] | None = None
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._tfd: _timerfd.Timerfd | None = None
@@ -293,7 +295,11 @@ class DeadlineWaiter:
         self._wakeup.fire()
 
     def _on_wake(self, _wake: object) -> None:
-        self._wakeup.fire()
+        fut = self._vfut
+        if fut is not None:
+            _set_done(fut)
+        else:
+            self._wakeup.fire()
 
     # ------------------------------------------------------------------------------------------- waiting
     async def wait_until(self, deadline: float, wake: asyncio.Future[Any] | None = None) -> bool:
@@ -303,7 +309,7 @@ class DeadlineWaiter:
         watched, never completed by the waiter). A deadline already passed returns at once on a real loop and
         after one loop pass on the virtual clock. One wait at a time per waiter.
         """
-        if self._wakeup.waiting:
+        if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.wait_until: this waiter is already waiting (one task per waiter)")
         if self.mode == "virtual":
             return await self._wait_virtual(deadline, wake)
@@ -372,6 +378,8 @@ class DeadlineWaiter:
             self._handle = None
 
     async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:
+        # A plain Future completed by a plain loop timer, as a bare asyncio.sleep would be: tasks woken at the
+        # same virtual instant resume in the order their timers were scheduled, run after run.
         loop = self._loop
         if deadline <= loop.time():
             await asyncio.sleep(0)
@@ -379,16 +387,17 @@ class DeadlineWaiter:
         if wake is not None and wake.done():
             return False
         self.waits += 1
-        handle = loop.call_at(deadline, self._on_loop_timer_cb)  # exact: no float error accumulates
+        fut = self._vfut = loop.create_future()
+        handle = loop.call_at(deadline, _set_done, fut)  # exact: no float error accumulates
         if wake is not None:
             wake.add_done_callback(self._on_wake_cb)
         try:
-            await self._wakeup
+            await fut
         finally:
+            self._vfut = None
             handle.cancel()
             if wake is not None:
                 wake.remove_done_callback(self._on_wake_cb)
-            self._watched = None
         return not (wake is not None and wake.done() and loop.time() < deadline)
 
     def _learn(self, late: float) -> None:

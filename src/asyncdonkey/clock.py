@@ -25,10 +25,11 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
 
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
   ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
-  is learned from the wake-up lateness actually observed (the 99.5th percentile of the recent lateness of the
+  is learned from the wake-up lateness actually observed (the 98th percentile of the recent lateness of the
   early timer, with a margin), so a quiet machine spins for tens of microseconds, a noisy one for longer, and
-  nobody spins for a guessed constant. The spin never takes more than :data:`SPIN_BUDGET` (3 %) of the time
-  between deadlines: preemption outliers on a loaded machine cannot be spun away, only paid for.
+  nobody spins for a guessed constant. The spin never takes more than half a millisecond, nor more than
+  :data:`SPIN_BUDGET` (3 %) of the time between deadlines: preemption on a loaded machine cannot be spun away,
+  only paid for.
 
 Wall-clock time (``time.time()``) is used only where a human or a file needs it, e.g. ``_timestamp_ms`` in
 recorded records.
@@ -102,15 +103,18 @@ WaitMode = Literal["timerfd", "loop-timer", "virtual"]
 
 # Precise mode: how the spin window is learned from observed timer lateness.
 _LATE_SAMPLES = 256  # recent lateness samples kept
-_LATE_QUANTILE = 0.995
+_LATE_QUANTILE = 0.98  # higher quantiles chase preemption on a busy machine, which no spin can fix
 _LATE_REFRESH = 32  # recompute the window every this many samples
 _WINDOW_MARGIN = 1.25  # the window is the quantile times this ...
 _WINDOW_FLOOR_S = 20e-6  # ... at least this (the spin's own check-to-start cost) ...
-_WINDOW_CEIL_S = 5e-3  # ... and at most this, whatever a loaded machine reports ...
+#: ... and at most this: measured on a busy 2-core VM, spinning longer than about half a millisecond made the
+#: next wake-ups *later* (the scheduler's fairness counts the spin against the task), so the window grew, and
+#: the spin with it, until precise mode was less precise than the default.
+_WINDOW_CEIL_S = 0.5e-3
 #: ... and at most this fraction of the time between successive deadlines: a loaded machine's preemption
 #: outliers cannot be spun away, and chasing them would make precise mode spin for a large part of each period.
 SPIN_BUDGET = 0.03
-_WINDOW_START_S = 1e-3  # until the first samples are in
+_WINDOW_START_S = 0.5e-3  # until the first samples are in
 
 #: Set to False to keep waits off timerfd (tests force the fallback this way; it is also the escape hatch for a
 #: kernel or sandbox where timerfd misbehaves).
@@ -128,7 +132,7 @@ class _Wakeup:
     cancellation) goes through ``call_soon`` like a Future's would.
     """
 
-    __slots__ = ("_asyncio_future_blocking", "_callback", "_cancelled", "_context", "_loop")
+    __slots__ = ("_asyncio_future_blocking", "_callback", "_cancel_msg", "_cancelled", "_context", "_loop")
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -136,6 +140,7 @@ class _Wakeup:
         self._callback: Callable[[Any], object] | None = None
         self._context: Any = None
         self._cancelled = False
+        self._cancel_msg: Any = None
 
     # the part of the Future protocol a Task uses
     def get_loop(self) -> asyncio.AbstractEventLoop:
@@ -158,17 +163,17 @@ class _Wakeup:
 
     def result(self) -> None:
         if self._cancelled:
-            raise asyncio.CancelledError()
+            raise asyncio.CancelledError(*(() if self._cancel_msg is None else (self._cancel_msg,)))
 
     def cancel(self, msg: Any = None) -> bool:
         if self._callback is None:
             return False
-        self._cancelled = True
+        self._cancelled, self._cancel_msg = True, msg
         self.fire()
         return True
 
     def __await__(self) -> Any:
-        self._cancelled = False
+        self._cancelled, self._cancel_msg = False, None
         self._asyncio_future_blocking = True
         yield self
         self.result()

@@ -385,3 +385,15 @@ def test_poller_thread_counts_errors_and_skips_when_reads_overrun():
     assert abs(poller.errors - poller.reads) <= 1
     assert poller.skipped >= poller.reads  # every slow read skips at least one deadline
     assert isinstance(poller.last_error, OSError)
+
+
+def test_a_cancel_message_reaches_the_waiting_task():
+    async def main():
+        with DeadlineWaiter() as waiter:
+            task = asyncio.create_task(waiter.wait_until(time.monotonic() + 30.0))
+            await asyncio.sleep(0.005)
+            task.cancel("car stopped")
+            with pytest.raises(asyncio.CancelledError, match="car stopped"):
+                await task
+
+    run_on(uvloop.new_event_loop, main())

@@ -33,7 +33,15 @@ from typing import Any
 
 import numpy as np
 
-from .pilot_base import IMAGE_SHAPE, PilotBase, PilotModelError, TensorInfo, _first_line, physical_cores
+from .pilot_base import (
+    IMAGE_SHAPE,
+    PilotBase,
+    PilotModelError,
+    TensorInfo,
+    _first_line,
+    inference_threads,
+    physical_cores,
+)
 
 __all__ = [
     "IMAGE_SHAPE",
@@ -128,9 +136,7 @@ class OnnxPilot(PilotBase):
         default_throttle: float | None = None,
     ) -> None:
         super().__init__(model_path, offload=offload, name=name, image_shape=image_shape)
-        if intra_op_threads is not None and (not isinstance(intra_op_threads, int) or intra_op_threads < 1):
-            raise ValueError(f"{self.name}: intra_op_threads must be a positive int, got {intra_op_threads!r}")
-        self.intra_op_threads = intra_op_threads or physical_cores()
+        self.intra_op_threads = inference_threads(intra_op_threads, self.name, "intra_op_threads")
         self._local = threading.local()
         self.session = self._load()
         inputs = [_onnx_info(i) for i in self.session.get_inputs()]

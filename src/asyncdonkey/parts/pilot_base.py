@@ -47,6 +47,13 @@ class PilotModelError(AsyncdonkeyError, ValueError):
     """The model file is missing, unreadable or not a pilot this part can run; the message names the file."""
 
 
+def inference_threads(value: int | None, where: str, arg: str) -> int:
+    """The threads a runtime gets: ``value`` (a positive int) or, by default, the physical cores."""
+    if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
+        raise ValueError(f"{where}: {arg} must be a positive int, got {value!r}")
+    return value or physical_cores()
+
+
 def physical_cores() -> int:
     """Physical CPU cores this process may run on (hyper-threads counted once); at least 1.
 

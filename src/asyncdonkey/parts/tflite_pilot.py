@@ -35,7 +35,14 @@ from typing import Any
 
 import numpy as np
 
-from .pilot_base import IMAGE_SHAPE, PilotBase, PilotModelError, TensorInfo, _first_line, physical_cores
+from .pilot_base import (
+    IMAGE_SHAPE,
+    PilotBase,
+    PilotModelError,
+    TensorInfo,
+    _first_line,
+    inference_threads,
+)
 
 __all__ = ["INTERPRETER_MODULES", "TflitePilot", "tflite_interpreter"]
 
@@ -92,9 +99,7 @@ class TflitePilot(PilotBase):
         default_throttle: float | None = None,
     ) -> None:
         super().__init__(model_path, offload=offload, name=name, image_shape=image_shape)
-        if num_threads is not None and (not isinstance(num_threads, int) or num_threads < 1):
-            raise ValueError(f"{self.name}: num_threads must be a positive int, got {num_threads!r}")
-        self.num_threads = num_threads or physical_cores()
+        self.num_threads = inference_threads(num_threads, self.name, "num_threads")
         self._lock = threading.Lock()
         self.interpreter = self._load()
         inputs = self.interpreter.get_input_details()

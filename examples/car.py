@@ -288,8 +288,15 @@ def make_car(
         from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber
 
         link = ZenohLink(prefix, zenoh)
-        camera_out = ZenohPublisher(link, ["cam/image_array"], jpeg={"cam/image_array": jpeg} if jpeg else None)
-        v.add(camera_out, inputs=camera_out.inputs)
+        frames_at_capture = pilot_mode == "frame"
+        camera_out = ZenohPublisher(
+            link,
+            ["cam/image_array"],
+            jpeg={"cam/image_array": jpeg} if jpeg else None,
+            on_change=frames_at_capture,  # the tick then skips the frame already sent when it was captured
+        )
+        # frame mode: each frame goes out the moment the simulated camera renders it, not at the next tick
+        v.add(camera_out, inputs=camera_out.inputs, react=frames_at_capture)
     if web is not None:
         from asyncdonkey.parts.web import WebController
 
@@ -304,7 +311,9 @@ def make_car(
         )
     if pilot_mode not in PILOT_MODES:
         raise ValueError(f"car.py --pilot-mode: expected one of {', '.join(PILOT_MODES)}, got {pilot_mode!r}")
-    react = not user_only and not remote and pilot_mode == "frame"
+    # frame mode: the drive mode and the car take each command the moment it exists (from the pipelined pilot,
+    # or as it arrives from the network for a remote pilot), not at the next tick
+    react = not user_only and pilot_mode == "frame"
     if remote:
         v.add(ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"]), outputs=["pilot/angle", "pilot/throttle"])
     elif not user_only:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from .clock import Clock, DeadlineWaiter, Schedule
 from .errors import PartError
 from .memory import Memory
-from .pipeline import after_store, build_pipelines
+from .pipeline import Reaction, after_store, build_pipelines, part_failed
 from .plan import Background, Entry
 from .profiler import Profiler
 from .ratelimit import LogThrottle
@@ -99,7 +99,7 @@ class Drive:
             e.errors = 0
             e.series = profiler.series_for(e.name)
         # pipelined parts (asyncdonkey.pipeline): the tick calls their kickers in their place
-        self.push_sources: list[tuple[Entry, Any]] = []
+        self.push_sources: list[tuple[Entry, Any, Reaction | None]] = []
         self._unsubscribe: list[Any] = []
         self.tick_entries, self.pipelines = build_pipelines(self)
 
@@ -148,8 +148,13 @@ class Drive:
         for p in self.pipelines:
             p.task = self.loop.create_task(p.main(), name=f"pipelined:{p.name}")
             self.tasks.append((p.entry, p.task))
-        for e, subscribe in self.push_sources:
-            self._unsubscribe.append(subscribe(lambda value, origin, e=e: self._push_threadsafe(e, value, origin)))
+        for e, subscribe, reaction in self.push_sources:
+            if reaction is not None:
+                reaction.task = self.loop.create_task(reaction.main(), name=f"react:{e.name}")
+                self.tasks.append((e, reaction.task))
+            self._unsubscribe.append(
+                subscribe(lambda value, origin, e=e, r=reaction: self._push_threadsafe(e, value, origin, r))
+            )
         for e in self.entries:
             if e.background is Background.THREAD:
                 t = threading.Thread(target=self._thread_main, args=(e,), name=f"part:{e.name}", daemon=True)
@@ -160,22 +165,28 @@ class Drive:
                 task.add_done_callback(lambda t, e=e: self._task_done(e, t))
                 self.tasks.append((e, task))
 
-    def _push_threadsafe(self, e: Entry, value: Any, origin: float) -> None:
+    def _push_threadsafe(self, e: Entry, value: Any, origin: float, reaction: Reaction | None) -> None:
         try:
-            self.loop.call_soon_threadsafe(self._pushed, e, value, origin)
+            self.loop.call_soon_threadsafe(self._pushed, e, value, origin, reaction)
         except RuntimeError:  # the loop has closed: the drive is over
             pass
 
-    def _pushed(self, e: Entry, value: Any, origin: float) -> None:
-        """A push source has a new value: into Memory now (not at the next tick), then start its pipelines."""
-        if not self.on:
+    def _pushed(self, e: Entry, value: Any, origin: float | None, reaction: Reaction | None) -> None:
+        """A push source has a new value: into Memory now (not at the next tick), then start what it triggers
+        and run the react=True parts it feeds."""
+        if not self.on or value is None or e.store_fixed is None:
             return
-        k = e.outputs[0]
         mem = self.mem
-        mem.d[k] = value
-        mem.stamps[k] = self.clock.now()
-        mem.origins[k] = origin
-        after_store(e, mem.origins)
+        now = self.clock.now()
+        try:
+            e.store_fixed(value, now if origin is None else origin, now)
+        except Exception as exc:  # a value that does not fit the outputs: the part's error, as in a tick
+            part_failed(self, e, exc)
+            return
+        if e.kicks:
+            after_store(e, mem.origins)
+        if reaction is not None:
+            reaction.kick()
 
     def unsubscribe_push_sources(self) -> None:
         for unsubscribe in self._unsubscribe:

@@ -17,8 +17,9 @@ When it starts:
 
 Its outputs carry the origin of the inputs it read (not of the time it finished), so ``pilot/throttle@age`` is
 the true age of the sensing behind the command, and the stale-command failsafe covers a pilot that dies or falls
-behind. Parts added with ``react=True`` downstream of it (``DriveMode``, the actuators) also run the moment it
-publishes, so a new command reaches the output without waiting for the next tick.
+behind. Parts added with ``react=True`` downstream of it (``DriveMode``, the actuators), or downstream of a push
+source (a command received from the network), also run the moment it publishes, so a new command reaches the
+output without waiting for the next tick.
 
 What each mode keeps and loses is in ``docs/control-periods.md``.
 """
@@ -122,48 +123,10 @@ class Pipeline:
             series.record(t_end - t)
 
     async def _react(self, t: float) -> None:
-        """Run the ``react=True`` parts downstream of this one now, in their add() order."""
-        drive = self.drive
-        d = drive.mem.d
-        origins = drive.mem.origins
-        now = drive.clock.now
-        for e in self.react:
-            cond = e.run_condition
-            if cond is not None and not d.get(cond):
-                continue
-            try:
-                args = e.args()
-                r = e.call(*args)
-                if e.awaits:
-                    r = await r
-                t_end = now()
-                if r is not None and e.store is not None:
-                    e.store(r, args, t_end)
-                lat = e.latency
-                if lat is not None and e.inputs and e.inputs[0] is not None:
-                    o = origins.get(e.inputs[0])
-                    if o is not None:
-                        lat(t_end, o)
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:
-                self._failed(e, exc)
+        await run_reactions(self.drive, self.react, self._failed)
 
     def _failed(self, e: Entry, exc: Exception) -> None:
-        e.errors += 1
-        drive = self.drive
-        if e.on_error == "continue":
-            more = drive._errlog.ready(e.name, drive.clock.now(), "more errors")
-            if more is not None:
-                logger.error("part %r (pipelined) failed: %r; continuing%s", e.name, exc, more)
-            return
-        err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
-        err.__cause__ = exc
-        if drive.background_error is None:
-            drive.background_error = err
-        logger.error("%s; stopping the vehicle", err)
-        drive.stop_reason = "error"
-        drive.request_stop("error")
+        part_failed(self.drive, e, exc)
 
     def stats(self, elapsed: float) -> dict[str, float]:
         span = self.last_start - self.first_start if self.first_start is not None else 0.0
@@ -173,6 +136,89 @@ class Pipeline:
             "rate_hz": (self.runs - 1) / span if self.runs > 1 and span > 0 else 0.0,
             "superseded": self.superseded,
         }
+
+
+async def run_reactions(drive: Drive, entries: list[Entry], failed: Callable[[Entry, Exception], None]) -> None:
+    """Run the ``react=True`` parts ``entries`` now, in their add() order (after a pipelined part or a push
+    source published): a new command reaches the actuators without waiting for the next tick."""
+    d = drive.mem.d
+    origins = drive.mem.origins
+    now = drive.clock.now
+    for e in entries:
+        cond = e.run_condition
+        if cond is not None and not d.get(cond):
+            continue
+        try:
+            args = e.args()
+            r = e.call(*args)
+            if e.awaits:
+                r = await r
+            t_end = now()
+            if r is not None and e.store is not None:
+                e.store(r, args, t_end)
+            lat = e.latency
+            if lat is not None and e.inputs and e.inputs[0] is not None:
+                o = origins.get(e.inputs[0])
+                if o is not None:
+                    lat(t_end, o)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            failed(e, exc)
+
+
+def part_failed(drive: Drive, e: Entry, exc: Exception) -> None:
+    """A part run beside the ticks failed: ``on_error="continue"`` logs (rate-limited); ``"stop"`` stops the car
+    with a :class:`PartError` that ``Vehicle.run()`` raises."""
+    e.errors += 1
+    if e.on_error == "continue":
+        more = drive._errlog.ready(e.name, drive.clock.now(), "more errors")
+        if more is not None:
+            logger.error("part %r (beside the ticks) failed: %r; continuing%s", e.name, exc, more)
+        return
+    err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
+    err.__cause__ = exc
+    if drive.background_error is None:
+        drive.background_error = err
+    logger.error("%s; stopping the vehicle", err)
+    drive.stop_reason = "error"
+    drive.request_stop("error")
+
+
+class Reaction:
+    """The ``react=True`` parts downstream of a push source, run in a task of their own each time it pushes
+    (a start requested while they run is served once more, with the newest values, never queued)."""
+
+    def __init__(self, drive: Drive, entries: list[Entry]) -> None:
+        self.drive = drive
+        self.entries = entries
+        self._kick = asyncio.Event()
+        self.runs = 0
+        self.task: asyncio.Task[None] | None = None
+
+    def kick(self) -> None:
+        self._kick.set()
+
+    async def main(self) -> None:
+        drive = self.drive
+        while True:
+            await self._kick.wait()
+            self._kick.clear()
+            if not drive.on:
+                return
+            self.runs += 1
+            await run_reactions(drive, self.entries, lambda e, exc: part_failed(drive, e, exc))
+
+
+def react_chain(entries: tuple[Entry, ...], channels: set[str]) -> list[Entry]:
+    """The ``react=True`` entries fed, directly or through each other, by ``channels``, in add() order."""
+    chain: list[Entry] = []
+    channels = set(channels)
+    for r in entries:
+        if r.react and channels.intersection(i for i in r.inputs if i is not None):
+            chain.append(r)
+            channels.update(r.outputs)
+    return chain
 
 
 class TickKicker:
@@ -226,7 +272,8 @@ def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
     """The tick's entry list (pipelined parts replaced by their kickers) and the drive's pipelines.
 
     Also wires the triggers: entries whose outputs feed a trigger get ``kicks`` (checked after their store), and
-    push sources (parts with ``subscribe``) writing a trigger channel are subscribed for the drive.
+    push sources (parts with ``subscribe``) feeding a trigger or ``react=True`` parts are subscribed for the
+    drive.
     """
     entries = drive.entries
     pipelines: list[Pipeline] = []
@@ -235,13 +282,7 @@ def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
         if not e.pipelined:
             tick.append(e)
             continue
-        channels = set(e.outputs)
-        react: list[Entry] = []
-        for r in entries:
-            if r.react and channels.intersection(i for i in r.inputs if i is not None):
-                react.append(r)
-                channels.update(r.outputs)
-        p = Pipeline(drive, e, react)
+        p = Pipeline(drive, e, react_chain(entries, set(e.outputs)))
         pipelines.append(p)
         tick.append(TickKicker(p))
     by_trigger: dict[str, list[Pipeline]] = {}
@@ -253,11 +294,15 @@ def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
         if e.pipelined:
             continue
         fed = [(k, p) for k in e.outputs for p in by_trigger.get(k, ())]
-        if fed:
-            e.kicks = tuple(fed)
-            sub = getattr(e.part, "subscribe", None)
-            if callable(sub) and len(e.outputs) == 1:
-                drive.push_sources.append((e, sub))
+        e.kicks = tuple(fed)
+        sub = getattr(e.part, "subscribe", None)
+        if not callable(sub) or not e.outputs:
+            continue
+        # a push source: its values go into Memory as they arrive, starting what they trigger and running the
+        # react=True parts they feed at once (a camera frame, a command from the network)
+        chain = react_chain(entries, set(e.outputs))
+        if fed or chain:
+            drive.push_sources.append((e, sub, Reaction(drive, chain) if chain else None))
     return tuple(tick), pipelines
 
 

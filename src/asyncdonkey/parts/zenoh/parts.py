@@ -289,8 +289,13 @@ class ZenohSubscriber:
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
-        for push in self._pushes:
-            push(value, origin)
+        if self._pushes:
+            if len(self.channels) == 1:
+                pushed, pushed_origin = value, origin
+            else:  # every channel's newest value, as run() would return them, with the oldest origin
+                pushed, pushed_origin = self._snapshot()
+            for push in self._pushes:
+                push(pushed, pushed_origin)
         if self.on_arrival is not None:
             self.on_arrival(self.channels[i])
 
@@ -309,13 +314,14 @@ class ZenohSubscriber:
             )
 
     def subscribe(self, callback: Callable[[Any, float], None]) -> Callable[[], None]:
-        """Call ``callback(value, origin)`` on Zenoh's thread for each value taken (one-channel subscribers only).
+        """Call ``callback(value, origin)`` on Zenoh's thread for each value taken: the value as ``run()`` would
+        return it (one channel: its value; several: all of them, with the oldest origin).
 
-        The drive loop subscribes when this part's channel triggers a pipelined part; the callback must be
-        thread-safe (the loop's hands the value over with ``call_soon_threadsafe``). Returns the unsubscriber.
+        The drive loop subscribes when this part's channels trigger a pipelined part or feed ``react=True``
+        parts, so a remote command reaches the actuators when it arrives, not at the next tick. The callback
+        must be thread-safe (the loop's hands the value over with ``call_soon_threadsafe``). Returns the
+        unsubscriber.
         """
-        if len(self.channels) != 1:
-            raise ValueError(f"{self!r}: subscribe() needs a subscriber of exactly one channel")
         self._pushes = (*self._pushes, callback)
 
         def unsubscribe() -> None:
@@ -325,6 +331,11 @@ class ZenohSubscriber:
 
     # -- the tick --------------------------------------------------------------------------------------
     def run(self) -> Any:
+        value, self._origin = self._snapshot(taken=True)
+        return value
+
+    def _snapshot(self, taken: bool = False) -> tuple[Any, float | None]:
+        """The newest value of every channel (one channel: its value) and the oldest of their origins."""
         out: list[Any] = []
         oldest = math.inf
         with self._lock:
@@ -332,11 +343,11 @@ class ZenohSubscriber:
                 if held is None:
                     out.append(None)
                     continue
-                held.fresh = False
+                if taken:
+                    held.fresh = False
                 out.append(held.value)
                 oldest = min(oldest, held.origin)
-        self._origin = oldest if math.isfinite(oldest) else None
-        return out[0] if len(out) == 1 else tuple(out)
+        return (out[0] if len(out) == 1 else tuple(out)), (oldest if math.isfinite(oldest) else None)
 
     def output_origin(self) -> float | None:
         """The oldest origin among the values the last ``run()`` returned (runtime clock)."""

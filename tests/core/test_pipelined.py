@@ -206,3 +206,28 @@ def test_pipelined_options_are_checked_at_add():
         v.add(SlowPilot(0.1), inputs=["cam"], outputs=["a", "b"], pipelined=True, react=True)
     with pytest.raises(PartSpecError, match="pipelined must be True or False"):
         v.add(SlowPilot(0.1), inputs=["cam"], pipelined="yes")
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_react_parts_run_when_a_push_source_publishes_not_at_the_next_tick():
+    cam = PushCamera(hz=20, offset=0.013)  # captures 13 ms after each tick
+
+    class Sender:
+        """A react part fed by the camera (a publisher sending frames off the car, say)."""
+
+        def __init__(self):
+            self.rows = []
+
+        def run(self, frame, age):
+            self.rows.append((get_clock().now(), frame, age))
+
+    sender = Sender()
+    v = Vehicle()
+    v.add(cam, outputs=["cam/image_array"])
+    v.add(sender, inputs=["cam/image_array", "cam/image_array@age"], react=True)
+    await v.run(RATE, 20)
+    pushed = [(t, f, age) for t, f, age in sender.rows if age == 0.0]
+    # every frame reached it the moment it was captured (13 ms after a tick), besides the tick's own run
+    assert len(pushed) >= 18
+    assert all(round((t - 0.013) * RATE, 6) % 1 == 0 for t, _f, _a in pushed)

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from .clock import Clock, DeadlineWaiter, Schedule
 from .errors import PartError
 from .memory import Memory
-from .pipeline import Reaction, after_store, build_pipelines, part_failed
+from .pipeline import Reaction, after_store, build_pipelines
 from .plan import Background, Entry
 from .profiler import Profiler
 from .ratelimit import LogThrottle
@@ -181,7 +181,7 @@ class Drive:
         try:
             e.store_fixed(value, now if origin is None else origin, now)
         except Exception as exc:  # a value that does not fit the outputs: the part's error, as in a tick
-            part_failed(self, e, exc)
+            self.background_failed(e, exc, "push")
             return
         if e.kicks:
             after_store(e, mem.origins)
@@ -199,7 +199,7 @@ class Drive:
             e.part.update()
         except Exception as exc:
             try:
-                self.loop.call_soon_threadsafe(self._background_failed, e, exc)
+                self.loop.call_soon_threadsafe(self.background_failed, e, exc)
             except RuntimeError:
                 logger.error("part %r background update() failed after the drive ended: %r", e.name, exc)
 
@@ -208,12 +208,17 @@ class Drive:
             return
         exc = task.exception()
         if exc is not None:
-            self._background_failed(e, exc)
+            self.background_failed(e, exc)
 
-    def _background_failed(self, e: Entry, exc: BaseException) -> None:
+    def background_failed(self, e: Entry, exc: BaseException, what: str = "background update()") -> None:
+        """A part's work beside the ticks failed (its ``update()``, a pipelined or reacting run, a push):
+        ``on_error="continue"`` (or a drive already ending) logs, rate-limited; ``"stop"`` stops the car with a
+        :class:`PartError` that ``Vehicle.run()`` raises."""
         e.errors += 1
         if e.on_error == "continue" or not self.on:
-            logger.error("part %r background update() failed: %r", e.name, exc)
+            more = self._errlog.ready(e.name, self.clock.now(), "more errors")
+            if more is not None:
+                logger.error("part %r: %s failed: %r; continuing%s", e.name, what, exc, more)
             return
         err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
         err.__cause__ = exc
@@ -317,11 +322,8 @@ class Drive:
                     e.errors += 1
                     logger.error("%s", exc)
                 e.series.record(t_end - t)
-                lat = e.latency
-                if lat is not None:
-                    o = origins.get(e.inputs[0]) if e.inputs and e.inputs[0] is not None else None
-                    if o is not None:
-                        lat(t_end, o)
+                if e.latency is not None:
+                    e.latency(t_end)
                 if t_end - t > block_report_s and e.is_sync_inline:
                     self._report_block(e, t_end - t, t_end)
             self.current = None

@@ -18,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -355,7 +355,7 @@ class Vehicle:
             if callable(attach):
                 attach(ActuatorRuntime(record, drive.watchdog))
             else:
-                e.latency = record  # the loop measures it: end of run() minus the origin of its first input
+                e.latency = _run_end_latency(record, self.mem.origins, e)
         if drive.watchdog is not None:
             drive.watchdog.start()
 
@@ -441,6 +441,24 @@ class Vehicle:
         """:meth:`run` with SIGINT and SIGTERM bound to the two-step stop (``asyncdonkey.signals``)."""
         with stop_on_signals(self, self.shutdown_deadline_s()):
             return await self.run(rate_hz, max_loop_count, **kwargs)
+
+
+def _run_end_latency(
+    record: Callable[[float, float], None], origins: dict[str, float], e: Entry
+) -> Callable[[float], None] | None:
+    """For an actuator that writes inside its ``run()``: ``latency(t_end)`` records the end of its run minus the
+    origin of its first input (its command). ``None`` for an actuator without inputs (nothing to measure)."""
+    k = next((i for i in e.inputs if i is not None), None)
+    if k is None:
+        return None
+    oget = origins.get
+
+    def latency(t_end: float) -> None:
+        o = oget(k)
+        if o is not None:
+            record(t_end, o)
+
+    return latency
 
 
 def run_blocking(coro: Any, *, use_uvloop: bool = True) -> Any:

@@ -31,7 +31,6 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .errors import PartError
 from .profiler import Series
 
 if TYPE_CHECKING:
@@ -126,7 +125,7 @@ class Pipeline:
         await run_reactions(self.drive, self.react, self._failed)
 
     def _failed(self, e: Entry, exc: Exception) -> None:
-        part_failed(self.drive, e, exc)
+        self.drive.background_failed(e, exc, "pipelined run()" if e is self.entry else "reacting run()")
 
     def stats(self, elapsed: float) -> dict[str, float]:
         span = self.last_start - self.first_start if self.first_start is not None else 0.0
@@ -142,7 +141,6 @@ async def run_reactions(drive: Drive, entries: list[Entry], failed: Callable[[En
     """Run the ``react=True`` parts ``entries`` now, in their add() order (after a pipelined part or a push
     source published): a new command reaches the actuators without waiting for the next tick."""
     d = drive.mem.d
-    origins = drive.mem.origins
     now = drive.clock.now
     for e in entries:
         cond = e.run_condition
@@ -156,33 +154,12 @@ async def run_reactions(drive: Drive, entries: list[Entry], failed: Callable[[En
             t_end = now()
             if r is not None and e.store is not None:
                 e.store(r, args, t_end)
-            lat = e.latency
-            if lat is not None and e.inputs and e.inputs[0] is not None:
-                o = origins.get(e.inputs[0])
-                if o is not None:
-                    lat(t_end, o)
+            if e.latency is not None:
+                e.latency(t_end)
         except asyncio.CancelledError:
             raise
         except Exception as exc:
             failed(e, exc)
-
-
-def part_failed(drive: Drive, e: Entry, exc: Exception) -> None:
-    """A part run beside the ticks failed: ``on_error="continue"`` logs (rate-limited); ``"stop"`` stops the car
-    with a :class:`PartError` that ``Vehicle.run()`` raises."""
-    e.errors += 1
-    if e.on_error == "continue":
-        more = drive._errlog.ready(e.name, drive.clock.now(), "more errors")
-        if more is not None:
-            logger.error("part %r (beside the ticks) failed: %r; continuing%s", e.name, exc, more)
-        return
-    err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
-    err.__cause__ = exc
-    if drive.background_error is None:
-        drive.background_error = err
-    logger.error("%s; stopping the vehicle", err)
-    drive.stop_reason = "error"
-    drive.request_stop("error")
 
 
 class Reaction:
@@ -207,7 +184,7 @@ class Reaction:
             if not drive.on:
                 return
             self.runs += 1
-            await run_reactions(drive, self.entries, lambda e, exc: part_failed(drive, e, exc))
+            await run_reactions(drive, self.entries, lambda e, exc: drive.background_failed(e, exc, "reacting run()"))
 
 
 def react_chain(entries: tuple[Entry, ...], channels: set[str]) -> list[Entry]:

@@ -99,8 +99,8 @@ class Entry:
     def __init__(self) -> None:
         self.errors = 0
         self.series: Any = None
-        #: set per run for an actuator the loop measures itself: ``latency(run end, origin of its command)``
-        self.latency: Callable[[float, float], None] | None = None
+        #: set per run for an actuator the loop measures itself: ``latency(run end)`` (minus its command's origin)
+        self.latency: Callable[[float], None] | None = None
         self.pipelined = False
         #: per run: (channel, pipeline) pairs this entry's outputs trigger (see ``asyncdonkey.pipeline``)
         self.kicks: tuple[Any, ...] = ()

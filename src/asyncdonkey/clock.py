@@ -219,6 +219,9 @@ class DeadlineWaiter:
 
     __slots__ = (
         "__weakref__",
+        "_call",
+        "_call_deadline",
+        "_call_target",
         "_closed",
         "_handle",
         "_last_deadline",
@@ -250,6 +253,9 @@ class DeadlineWaiter:
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._tfd: _timerfd.Timerfd | None = None
         self._closed = False
+        # call_at(): the pending callback, its deadline and when its timer is armed (earlier in precise mode)
+        self._call: Callable[[], object] | None = None
+        self._call_deadline = self._call_target = math.inf
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
         self._on_loop_timer_cb = self._on_loop_timer
         self.precise = bool(precise) and not clock.is_virtual
@@ -286,6 +292,9 @@ class DeadlineWaiter:
 
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_timerfd(self, tfd: _timerfd.Timerfd) -> None:
+        if self._call is not None:
+            self._fire_call()
+            return
         wakeup = self._wakeup
         if wakeup.waiting:
             # No read() here: the waiter re-arms (which clears the expiry) before the loop polls again, or
@@ -297,6 +306,9 @@ class DeadlineWaiter:
 
     def _on_loop_timer(self) -> None:
         self._handle = None
+        if self._call is not None:
+            self._fire_call()
+            return
         self._wakeup.fire()
 
     def _on_wake(self, _wake: object) -> None:
@@ -325,14 +337,7 @@ class DeadlineWaiter:
         if t >= deadline:
             return True
         self.waits += 1
-        if self.precise:
-            gap, self._last_deadline = deadline - self._last_deadline, deadline
-            window = self.spin_window_s
-            if gap > 0 and window > gap * SPIN_BUDGET:
-                window = gap * SPIN_BUDGET
-            target = deadline - window
-        else:
-            target = deadline
+        target = self._target(deadline)
         if t < target:
             wakeup = self._wakeup
             if wake is not None and wake is not self._watched:
@@ -381,6 +386,103 @@ class DeadlineWaiter:
         if handle is not None:
             handle.cancel()
             self._handle = None
+
+    # --------------------------------------------------------------------------------- calling back
+    def call_at(self, deadline: float, callback: Callable[[], float | None]) -> None:
+        """Call ``callback()`` from the loop at (never before) ``deadline`` on the runtime clock; when it returns
+        a number, call it again at that deadline, and so on until it returns ``None``.
+
+        The callback form of :meth:`wait_until`, for a periodic job that is plain synchronous code (the drive
+        loop's tick when no part awaits): the timer's own loop callback runs it and re-arms the timer for the
+        deadline it returns, so a period costs no task resume, no coroutine frames, no awaitable and no call
+        here. Same precision and modes as :meth:`wait_until` (precise mode spins the last stretch inside the
+        timer callback). A deadline already passed calls back on the next loop pass, never from inside this
+        call. One pending call per waiter, and not while a :meth:`wait_until` is waiting; :meth:`cancel_call`
+        drops it.
+        """
+        if self._wakeup.waiting or self._vfut is not None:
+            raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
+        self.cancel_call()
+        self._call = callback
+        self._call_deadline = deadline
+        if self.mode == "virtual":
+            self._virtual_arm(deadline)
+            return
+        target = self._call_target = self._target(deadline)
+        self.waits += 1
+        self._arm(target, self._now())
+
+    def cancel_call(self) -> None:
+        """Drop the pending :meth:`call_at` callback, if any (idempotent)."""
+        if self._call is None:
+            return
+        self._call = None
+        if self.mode == "virtual":
+            if self._handle is not None:
+                self._handle.cancel()
+                self._handle = None
+        else:
+            self._disarm()
+
+    def _fire_call(self) -> None:
+        """The timer fired with a :meth:`call_at` pending: call back (and re-arm for the deadline it returns),
+        or re-arm if this was a stale readiness."""
+        t = self._now()
+        target = self._call_target
+        if t < target:  # a readiness left from an earlier arming, or a loop timer rounded early: not yet
+            self._arm(target, t)
+            return
+        callback = self._call
+        self._call = None
+        if self.precise:
+            self._learn(t - target)
+            deadline = self._call_deadline
+            now = self._now
+            while t < deadline:  # the last stretch is spun on the clock
+                t = now()
+        # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series, the next
+        # readiness finds nothing pending and consumes the expiry then.
+        deadline = callback()
+        if deadline is not None and self._call is None:
+            self._call = callback
+            self._call_deadline = deadline
+            target = self._call_target = self._target(deadline) if self.precise else deadline
+            self.waits += 1
+            tfd = self._tfd
+            if tfd is not None:
+                tfd.arm(math.ceil(target * 1e9))
+            else:
+                self._arm(target, self._now())
+
+    def _virtual_arm(self, deadline: float) -> None:
+        # An exact loop timer whose callback is queued for the next pass, as a task woken by a timer would be:
+        # among tasks and callbacks due at the same virtual instant, the order is what it was for a task awaiting
+        # wait_until (their timers' order), run after run.
+        loop = self._loop
+        self._handle = loop.call_at(deadline, loop.call_soon, self._virtual_fire)
+
+    def _virtual_fire(self) -> None:
+        callback = self._call
+        if callback is None:  # cancelled after its timer fired
+            return
+        self._call = None
+        self._handle = None
+        deadline = callback()
+        if deadline is not None and self._call is None:
+            self._call = callback
+            self._call_deadline = deadline
+            self._virtual_arm(deadline)
+
+    def _target(self, deadline: float) -> float:
+        """When to arm the timer for ``deadline``: the deadline itself, or in precise mode the learned spin window
+        before it (at most :data:`SPIN_BUDGET` of the time since the previous deadline)."""
+        if not self.precise:
+            return deadline
+        gap, self._last_deadline = deadline - self._last_deadline, deadline
+        window = self.spin_window_s
+        if gap > 0 and window > gap * SPIN_BUDGET:
+            window = gap * SPIN_BUDGET
+        return deadline - window
 
     async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:
         # A plain Future completed by a plain loop timer, as a bare asyncio.sleep would be: tasks woken at the
@@ -439,6 +541,8 @@ class DeadlineWaiter:
         self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers
+        if self._call is not None:  # so does a pending call_at
+            self._arm(self._call_target, self._now())
 
     def __enter__(self) -> DeadlineWaiter:
         return self

@@ -31,8 +31,6 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .profiler import Series
-
 if TYPE_CHECKING:
     from .drive import Drive
     from .plan import Entry
@@ -215,7 +213,6 @@ class TickKicker:
         "on_error",
         "outputs",
         "run_condition",
-        "series",
         "store",
     )
 
@@ -234,7 +231,6 @@ class TickKicker:
         self.is_sync_inline = False
         self.on_error = "continue"
         self.errors = 0
-        self.series = Series(f"{e.name} (start)", 16)
 
 
 def _no_args() -> tuple[()]:

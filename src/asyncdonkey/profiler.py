@@ -5,8 +5,11 @@ bound. Here each series keeps the most recent ``window`` samples in a fixed ``ar
 and averages come from that window) plus run-long count, min and max. As in Donkeycar, the first sample of each
 part is ignored (one-off start-up cost) and so is the last (it may have been cut short by a stop).
 
-Recording one sample is an index computation and one store: it sits on the hot path for every part of every
-tick.
+Recording sits on the hot path for every part of every tick, so the parts of the tick do not record durations
+one series at a time: the tick writes one row of a :class:`TickTable` (its start, then each part's end time, one
+float store per part), and each part's durations are worked out from those rows only when a report asks
+(:class:`PartColumn`, which reads like a :class:`Series`). Pipelined parts, latencies and the loop's own series
+record into :class:`Series` rings.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from typing import Any
 import numpy as np
 from prettytable import PrettyTable
 
-__all__ = ["DEFAULT_WINDOW", "PERCENTILES", "Profiler", "Series"]
+__all__ = ["DEFAULT_WINDOW", "PERCENTILES", "PartColumn", "Profiler", "Series", "TickTable"]
 
 #: samples kept per series for percentiles (at 20 Hz: about 13.6 minutes of driving)
 DEFAULT_WINDOW = 16384
@@ -97,19 +100,150 @@ class Series:
         arr = self.recent(drop_last)
         if len(arr) == 0:
             return None
-        pct = np.percentile(arr, PERCENTILES)
-        out = {
-            "max": float(arr.max()) * 1e3,
-            "min": float(arr.min()) * 1e3,
-            "avg": float(arr.mean()) * 1e3,
-            "count": float(self.count),
-        }
-        for p, v in zip(PERCENTILES, pct, strict=True):
-            out[_pct_key(p)] = float(v) * 1e3
-        if self.count > self.window:  # run-long extremes reach beyond the window
-            out["max"] = max(out["max"], self.evicted_max * 1e3)
-            out["min"] = min(out["min"], self.evicted_min * 1e3)
+        return _summary(arr, self.count, self.evicted_min, self.evicted_max)
+
+
+def _summary(arr: np.ndarray, count: int, evicted_min: float, evicted_max: float) -> dict[str, float]:
+    pct = np.percentile(arr, PERCENTILES)
+    out = {
+        "max": max(float(arr.max()), evicted_max) * 1e3,
+        "min": min(float(arr.min()), evicted_min) * 1e3,
+        "avg": float(arr.mean()) * 1e3,
+        "count": float(count),
+    }
+    for p, v in zip(PERCENTILES, pct, strict=True):
+        out[_pct_key(p)] = float(v) * 1e3
+    return out
+
+
+class TickTable:
+    """The tick's part timings: one row per tick in a ring of ``window`` rows.
+
+    A row is the tick's start time followed by the end time of each of its parts, in order (``nan`` for a part
+    its run condition skipped). Each part starts when the one before it (or the tick) ended, so its duration is
+    its end minus the nearest earlier time in the row. The tick writes the row in place (:attr:`buf`, from
+    :meth:`offset`) and counts it with :meth:`commit`; a tick cut short is never counted.
+
+    Run-long extremes: before rows are overwritten, in blocks of :data:`FOLD_ROWS` ticks, their durations are
+    folded into per-part minima and maxima (a few microseconds every thousand ticks, off the per-part path).
+    """
+
+    FOLD_ROWS = 1024
+
+    __slots__ = ("_cache", "_fold", "buf", "evicted_count", "evicted_max", "evicted_min", "ncol", "rows", "window")
+
+    def __init__(self, n_parts: int, window: int = DEFAULT_WINDOW) -> None:
+        self.ncol = n_parts + 1
+        self.window = window
+        self.buf = array("d", bytes(8 * window * self.ncol))
+        self.rows = 0  # ticks committed
+        self._fold = min(self.FOLD_ROWS, window)
+        self.evicted_min = np.full(n_parts, math.inf)
+        self.evicted_max = np.full(n_parts, -math.inf)
+        self.evicted_count = np.zeros(n_parts, dtype=np.int64)
+        # the last durations() of a long range: a report asks for every part's column of the same ticks
+        self._cache: tuple[int, int, int, np.ndarray] | None = None
+
+    def offset(self, tick: int) -> int:
+        """Where tick number ``tick``'s row starts in :attr:`buf`."""
+        return (tick % self.window) * self.ncol
+
+    def commit(self) -> None:
+        """The row at :meth:`offset` (``rows``) is complete."""
+        rows = self.rows = self.rows + 1
+        if rows >= self.window and rows % self._fold == 0:
+            # the next rows to be overwritten leave the window: keep their extremes
+            first = rows - self.window
+            d = self.durations(first, first + self._fold)
+            valid = ~np.isnan(d)
+            self.evicted_count += valid.sum(axis=0)
+            with np.errstate(invalid="ignore"):
+                self.evicted_min = np.fmin(self.evicted_min, np.nanmin(np.where(valid, d, np.inf), axis=0))
+                self.evicted_max = np.fmax(self.evicted_max, np.nanmax(np.where(valid, d, -np.inf), axis=0))
+
+    def durations(self, start: int, stop: int) -> np.ndarray:
+        """Part durations (seconds) of ticks ``start`` .. ``stop - 1`` (all still in the ring): one row per tick,
+        one column per part, ``nan`` where the part did not run."""
+        if stop <= start:
+            return np.empty((0, self.ncol - 1))
+        cache = self._cache
+        if cache is not None and cache[:3] == (self.rows, start, stop):
+            return cache[3]
+        out = self._durations(start, stop)
+        if stop - start > 1:
+            self._cache = (self.rows, start, stop, out)
         return out
+
+    def _durations(self, start: int, stop: int) -> np.ndarray:
+        m = np.frombuffer(self.buf, dtype=np.float64).reshape(self.window, self.ncol)
+        slots = np.arange(start, stop) % self.window
+        rows = m[slots]
+        ran = ~np.isnan(rows)
+        latest = np.where(ran, np.arange(self.ncol), 0)
+        np.maximum.accumulate(latest, axis=1, out=latest)
+        before = np.take_along_axis(rows, latest, axis=1)  # the nearest earlier time in the row
+        return rows[:, 1:] - before[:, :-1]
+
+    def oldest(self) -> int:
+        """The oldest tick that can be read: the one before it shares its slot with the row being written."""
+        return max(0, self.rows - self.window + 1)
+
+
+class PartColumn:
+    """One part's durations in a :class:`TickTable`, read like a :class:`Series`.
+
+    As in Donkeycar the first tick is left out (one-off start-up costs), and reports leave out the newest tick
+    (it may have been cut short by a stop). Samples are numbered by tick (tick 1 is sample 0); a tick that
+    skipped the part has no sample (:meth:`at` returns ``None``).
+    """
+
+    __slots__ = ("col", "name", "table")
+
+    def __init__(self, name: str, table: TickTable, col: int) -> None:
+        self.name = name
+        self.table = table
+        self.col = col
+
+    @property
+    def count(self) -> int:
+        """Ticks recorded, the first left out (a tick that skipped the part counts, without a sample)."""
+        return max(0, self.table.rows - 1)
+
+    def at(self, n: int) -> float | None:
+        """The part's duration on tick ``n + 1``, or ``None`` (not recorded, left the window, or skipped)."""
+        t = self.table
+        tick = n + 1
+        if n < 0 or tick >= t.rows or tick < t.oldest():
+            return None
+        v = float(t.durations(tick, tick + 1)[0, self.col])
+        return None if math.isnan(v) else v
+
+    @property
+    def last(self) -> float | None:
+        return self.at(self.count - 1) if self.count else None
+
+    def recent(self, drop_last: bool = True) -> np.ndarray:
+        """The part's durations in the window, oldest first (the newest tick dropped when ``drop_last``)."""
+        t = self.table
+        stop = t.rows - 1 if drop_last else t.rows
+        d = t.durations(max(1, t.oldest()), stop)[:, self.col]
+        return d[~np.isnan(d)]
+
+    @property
+    def max(self) -> float:
+        return max(float(self.table.evicted_max[self.col]), float(self.recent(False).max(initial=-math.inf)))
+
+    @property
+    def min(self) -> float:
+        return min(float(self.table.evicted_min[self.col]), float(self.recent(False).min(initial=math.inf)))
+
+    def summary(self, drop_last: bool = True) -> dict[str, float] | None:
+        arr = self.recent(drop_last)
+        if len(arr) == 0:
+            return None
+        t = self.table
+        count = int(t.evicted_count[self.col]) + len(self.recent(False))  # as Series.count: the newest included
+        return _summary(arr, count, float(t.evicted_min[self.col]), float(t.evicted_max[self.col]))
 
 
 def _pct_key(p: float) -> str:

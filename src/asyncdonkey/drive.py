@@ -25,7 +25,7 @@ from .errors import PartError
 from .memory import Memory
 from .pipeline import Reaction, after_store, build_pipelines
 from .plan import Background, Entry
-from .profiler import PartColumn, Profiler, TickTable
+from .profiler import Profiler, TableSeries, TickTable
 from .ratelimit import LogThrottle
 from .signals import PartInterrupted
 
@@ -109,14 +109,15 @@ class Drive:
         self._unsubscribe: list[Any] = []
         self.tick_entries, self.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
-        self.table = TickTable(len(self.tick_entries), profiler.window)
+        self.table = table = TickTable(len(self.tick_entries), 1.0 / report.rate_hz, profiler.window)
+        profiler.use_table(table)
         column = {id(e): col for col, e in enumerate(self.tick_entries)}
         for e in entries:
             e.errors = 0
             if e.pipelined:
                 e.series = profiler.series_for(e.name)
             else:
-                e.series = profiler.parts[e.name] = PartColumn(e.name, self.table, column[id(e)])
+                e.series = profiler.parts[e.name] = TableSeries(e.name, table, column[id(e)], skip_first=True)
 
     # ----------------------------------------------------------------------------------------- executor
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:
@@ -294,9 +295,10 @@ class Drive:
         * ``run_parts(entries)``: a run of parts that do not await, called in order;
         * ``run_awaited(entry)``: one part whose call is awaited (a coroutine, or a run offloaded to a thread).
 
-        Timing goes into the drive's :class:`~asyncdonkey.profiler.TickTable`: the tick's start, then each part's
-        end time, one float store per part (``nan`` for a part skipped by its run condition). A part starts when
-        the one before it ended, so one clock read per part is enough.
+        Timing goes into one row of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline and the
+        tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its run
+        condition), the tick's end. A part starts when the one before it ended, so one clock read per part is
+        enough; lateness, durations and overruns are worked out from the rows when a report asks.
         """
         now = self.clock.now
         period = sched.period
@@ -304,12 +306,10 @@ class Drive:
         origins = self.mem.origins
         dormant = self.mem.dormant
         profiler = self.profiler
-        lateness_rec = profiler.lateness.record
-        overrun_rec = profiler.overrun.record
-        tick_rec = profiler.tick.record
         table = self.table
         buf = table.buf
-        offset = table.offset
+        window = table.window
+        ncol = table.ncol
         commit = table.commit
         block_report_s = self.block_report_s
         part_failed = self._part_failed
@@ -323,14 +323,16 @@ class Drive:
         def begin(deadline: float) -> float:
             nonlocal pos, t
             self.last_start = t = start = now()
-            if self.loops == 0:
+            loops = self.loops
+            if loops == 0:
                 self.first_start = start
-            lateness_rec(start - deadline)
             if dormant:
                 dormant.clear()
-            pos = offset(self.loops)
-            buf[pos] = start
-            pos += 1
+            pos = (loops % window) * ncol
+            buf[pos] = deadline
+            buf[pos + 1] = start
+            pos += 2
+            table.begun = loops + 1
             return start
 
         def run_parts(entries: tuple[Any, ...]) -> None:
@@ -417,19 +419,15 @@ class Drive:
             self.current = None
             self.part_started = inf
             self.last_end = t_end = now()
+            buf[pos] = t_end
             commit()
             self.loops += 1
-            dur = t_end - start
-            over = dur - period
+            over = t_end - start - period
             if over > _TIME_EPS:
                 self.overruns += 1
-                overrun_rec(over)
                 more = jitter_log.ready("jitter", t_end) if verbose else None
                 if more is not None:
                     logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
-            else:
-                overrun_rec(0.0)
-            tick_rec(dur)
             if verbose and report_every and self.loops % report_every == 0:
                 logger.info("%s", profiler.table())
             # more than a period behind: the missed deadlines are skipped and counted, never burst

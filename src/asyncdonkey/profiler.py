@@ -8,8 +8,8 @@ part is ignored (one-off start-up cost) and so is the last (it may have been cut
 Recording sits on the hot path for every part of every tick, so the parts of the tick do not record durations
 one series at a time: the tick writes one row of a :class:`TickTable` (its start, then each part's end time, one
 float store per part), and each part's durations are worked out from those rows only when a report asks
-(:class:`PartColumn`, which reads like a :class:`Series`). Pipelined parts, latencies and the loop's own series
-record into :class:`Series` rings.
+(:class:`TableSeries`, which reads like a :class:`Series`); so are the loop's lateness, tick duration and
+overrun. Pipelined parts and latencies record into :class:`Series` rings.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from prettytable import PrettyTable
 
-__all__ = ["DEFAULT_WINDOW", "PERCENTILES", "PartColumn", "Profiler", "Series", "TickTable"]
+__all__ = ["DEFAULT_WINDOW", "PERCENTILES", "Profiler", "Series", "TableSeries", "TickTable"]
 
 #: samples kept per series for percentiles (at 20 Hz: about 13.6 minutes of driving)
 DEFAULT_WINDOW = 16384
@@ -116,106 +116,152 @@ def _summary(arr: np.ndarray, count: int, evicted_min: float, evicted_max: float
     return out
 
 
+def _pct_key(p: float) -> str:
+    return f"{p:g}%"
+
+
 class TickTable:
-    """The tick's part timings: one row per tick in a ring of ``window`` rows.
+    """The tick's timings: one row per tick in a ring of ``window`` rows, written in place by the tick.
 
-    A row is the tick's start time followed by the end time of each of its parts, in order (``nan`` for a part
-    its run condition skipped). Each part starts when the one before it (or the tick) ended, so its duration is
-    its end minus the nearest earlier time in the row. The tick writes the row in place (:attr:`buf`, from
-    :meth:`offset`) and counts it with :meth:`commit`; a tick cut short is never counted.
+    A row is ``[deadline, start, end of part 1, ..., end of part n, end]`` (``nan`` for a part its run condition
+    skipped). Each part starts when the one before it (or the tick) ended, so its duration is its end minus the
+    nearest earlier time in the row; the loop's own figures follow from the row too: lateness is start minus
+    deadline, the tick's duration end minus start, its overrun that duration beyond the period. The tick writes
+    the row from :meth:`offset` (``begun`` counts it from its start) and counts it with :meth:`commit`; a tick
+    cut short is never counted.
 
-    Run-long extremes: before rows are overwritten, in blocks of :data:`FOLD_ROWS` ticks, their durations are
-    folded into per-part minima and maxima (a few microseconds every thousand ticks, off the per-part path).
+    :meth:`values` works the figures out only when a report asks; :class:`TableSeries` reads one of them like a
+    :class:`Series`. Run-long extremes: before rows are overwritten, in blocks of :data:`FOLD_ROWS` ticks, their
+    figures are folded into run-long minima and maxima (a few microseconds every thousand ticks).
     """
 
     FOLD_ROWS = 1024
+    #: figure columns after the parts' durations in :meth:`values`
+    LATENESS, TICK, OVERRUN = -3, -2, -1
 
-    __slots__ = ("_cache", "_fold", "buf", "evicted_count", "evicted_max", "evicted_min", "ncol", "rows", "window")
+    __slots__ = (
+        "_cache",
+        "_fold",
+        "begun",
+        "buf",
+        "evicted_count",
+        "evicted_max",
+        "evicted_min",
+        "n_parts",
+        "ncol",
+        "period",
+        "rows",
+        "window",
+    )
 
-    def __init__(self, n_parts: int, window: int = DEFAULT_WINDOW) -> None:
-        self.ncol = n_parts + 1
+    def __init__(self, n_parts: int, period: float, window: int = DEFAULT_WINDOW) -> None:
+        self.n_parts = n_parts
+        self.ncol = n_parts + 3
+        self.period = period
         self.window = window
         self.buf = array("d", bytes(8 * window * self.ncol))
         self.rows = 0  # ticks committed
+        self.begun = 0  # ticks started (rows, or rows + 1 while a tick runs)
         self._fold = min(self.FOLD_ROWS, window)
-        self.evicted_min = np.full(n_parts, math.inf)
-        self.evicted_max = np.full(n_parts, -math.inf)
-        self.evicted_count = np.zeros(n_parts, dtype=np.int64)
-        # the last durations() of a long range: a report asks for every part's column of the same ticks
-        self._cache: tuple[int, int, int, np.ndarray] | None = None
+        nfig = n_parts + 3
+        self.evicted_min = np.full(nfig, math.inf)
+        self.evicted_max = np.full(nfig, -math.inf)
+        self.evicted_count = np.zeros(nfig, dtype=np.int64)
+        # the last values() of a long range: a report asks for every figure of the same ticks
+        self._cache: tuple[int, int, np.ndarray] | None = None
 
     def offset(self, tick: int) -> int:
         """Where tick number ``tick``'s row starts in :attr:`buf`."""
         return (tick % self.window) * self.ncol
 
     def commit(self) -> None:
-        """The row at :meth:`offset` (``rows``) is complete."""
+        """The row of tick number ``rows`` is complete."""
         rows = self.rows = self.rows + 1
         if rows >= self.window and rows % self._fold == 0:
             # the next rows to be overwritten leave the window: keep their extremes
             first = rows - self.window
-            d = self.durations(first, first + self._fold)
-            valid = ~np.isnan(d)
+            v = self._values(first, first + self._fold)
+            valid = ~np.isnan(v)
             self.evicted_count += valid.sum(axis=0)
-            with np.errstate(invalid="ignore"):
-                self.evicted_min = np.fmin(self.evicted_min, np.nanmin(np.where(valid, d, np.inf), axis=0))
-                self.evicted_max = np.fmax(self.evicted_max, np.nanmax(np.where(valid, d, -np.inf), axis=0))
-
-    def durations(self, start: int, stop: int) -> np.ndarray:
-        """Part durations (seconds) of ticks ``start`` .. ``stop - 1`` (all still in the ring): one row per tick,
-        one column per part, ``nan`` where the part did not run."""
-        if stop <= start:
-            return np.empty((0, self.ncol - 1))
-        cache = self._cache
-        if cache is not None and cache[:3] == (self.rows, start, stop):
-            return cache[3]
-        out = self._durations(start, stop)
-        if stop - start > 1:
-            self._cache = (self.rows, start, stop, out)
-        return out
-
-    def _durations(self, start: int, stop: int) -> np.ndarray:
-        m = np.frombuffer(self.buf, dtype=np.float64).reshape(self.window, self.ncol)
-        slots = np.arange(start, stop) % self.window
-        rows = m[slots]
-        ran = ~np.isnan(rows)
-        latest = np.where(ran, np.arange(self.ncol), 0)
-        np.maximum.accumulate(latest, axis=1, out=latest)
-        before = np.take_along_axis(rows, latest, axis=1)  # the nearest earlier time in the row
-        return rows[:, 1:] - before[:, :-1]
+            self.evicted_min = np.fmin(self.evicted_min, np.where(valid, v, np.inf).min(axis=0))
+            self.evicted_max = np.fmax(self.evicted_max, np.where(valid, v, -np.inf).max(axis=0))
 
     def oldest(self) -> int:
         """The oldest tick that can be read: the one before it shares its slot with the row being written."""
         return max(0, self.rows - self.window + 1)
 
+    def values(self, start: int, stop: int) -> np.ndarray:
+        """The figures (seconds) of committed ticks ``start`` .. ``stop - 1``, all still in the ring: one row per
+        tick, the parts' durations (``nan`` where a part did not run), then lateness, duration and overrun."""
+        if stop <= start:
+            return np.empty((0, self.n_parts + 3))
+        if stop - start == 1:
+            return self._values(start, stop)
+        # a report asks for every figure of nearly the same ticks: work out all committed rows once per tick
+        first, rows = self.oldest(), self.rows
+        cache = self._cache
+        if cache is None or cache[0] != rows or cache[1] != first:
+            cache = self._cache = (rows, first, self._values(first, rows))
+        return cache[2][start - first : stop - first]
 
-class PartColumn:
-    """One part's durations in a :class:`TickTable`, read like a :class:`Series`.
+    def lateness_of_running_tick(self) -> float | None:
+        """Start minus deadline of the tick running now (its row is not committed yet), or None."""
+        if self.begun <= self.rows:
+            return None
+        off = self.offset(self.rows)
+        return self.buf[off + 1] - self.buf[off]
 
-    As in Donkeycar the first tick is left out (one-off start-up costs), and reports leave out the newest tick
-    (it may have been cut short by a stop). Samples are numbered by tick (tick 1 is sample 0); a tick that
-    skipped the part has no sample (:meth:`at` returns ``None``).
+    def _values(self, start: int, stop: int) -> np.ndarray:
+        m = np.frombuffer(self.buf, dtype=np.float64).reshape(self.window, self.ncol)
+        rows = m[np.arange(start, stop) % self.window]
+        times = rows[:, 1:-1]  # the start, then each part's end
+        ran = ~np.isnan(times)
+        latest = np.where(ran, np.arange(times.shape[1]), 0)
+        np.maximum.accumulate(latest, axis=1, out=latest)
+        before = np.take_along_axis(times, latest, axis=1)  # the nearest earlier time in the row
+        out = np.empty((len(rows), self.n_parts + 3))
+        out[:, : self.n_parts] = times[:, 1:] - before[:, :-1]
+        out[:, self.LATENESS] = rows[:, 1] - rows[:, 0]
+        duration = rows[:, -1] - rows[:, 1]
+        out[:, self.TICK] = duration
+        over = duration - self.period
+        out[:, self.OVERRUN] = np.where(over > 1e-9, over, 0.0)
+        return out
+
+
+class TableSeries:
+    """One figure of a :class:`TickTable` (a part's durations, or the loop's lateness, duration or overrun),
+    read like a :class:`Series`.
+
+    Samples are numbered by tick. A part's first tick is left out as in Donkeycar (one-off start-up costs: tick 1
+    is its sample 0), and a tick that skipped the part has no sample (:meth:`at` returns ``None``). Lateness
+    counts the tick running now (its start is known); duration and overrun count ended ticks.
     """
 
-    __slots__ = ("col", "name", "table")
+    __slots__ = ("col", "name", "running", "skip_first", "table")
 
-    def __init__(self, name: str, table: TickTable, col: int) -> None:
+    def __init__(self, name: str, table: TickTable, col: int, *, skip_first: bool, running: bool = False) -> None:
         self.name = name
         self.table = table
         self.col = col
+        self.skip_first = skip_first
+        self.running = running
 
     @property
     def count(self) -> int:
-        """Ticks recorded, the first left out (a tick that skipped the part counts, without a sample)."""
-        return max(0, self.table.rows - 1)
+        t = self.table
+        n = t.begun if self.running else t.rows
+        return max(0, n - 1) if self.skip_first else n
 
     def at(self, n: int) -> float | None:
-        """The part's duration on tick ``n + 1``, or ``None`` (not recorded, left the window, or skipped)."""
+        """Sample number ``n``, or ``None`` (not recorded yet, left the window, or the part was skipped)."""
         t = self.table
-        tick = n + 1
-        if n < 0 or tick >= t.rows or tick < t.oldest():
+        tick = n + 1 if self.skip_first else n
+        if n < 0 or tick < t.oldest():
             return None
-        v = float(t.durations(tick, tick + 1)[0, self.col])
+        if tick >= t.rows:
+            return t.lateness_of_running_tick() if self.running and tick == t.rows else None
+        v = float(t.values(tick, tick + 1)[0, self.col])
         return None if math.isnan(v) else v
 
     @property
@@ -223,11 +269,11 @@ class PartColumn:
         return self.at(self.count - 1) if self.count else None
 
     def recent(self, drop_last: bool = True) -> np.ndarray:
-        """The part's durations in the window, oldest first (the newest tick dropped when ``drop_last``)."""
+        """The samples of the ended ticks in the window, oldest first (the newest dropped when ``drop_last``)."""
         t = self.table
-        stop = t.rows - 1 if drop_last else t.rows
-        d = t.durations(max(1, t.oldest()), stop)[:, self.col]
-        return d[~np.isnan(d)]
+        first = max(1, t.oldest()) if self.skip_first else t.oldest()
+        v = t.values(first, t.rows - 1 if drop_last else t.rows)[:, self.col]
+        return v[~np.isnan(v)]
 
     @property
     def max(self) -> float:
@@ -246,10 +292,6 @@ class PartColumn:
         return _summary(arr, count, float(t.evicted_min[self.col]), float(t.evicted_max[self.col]))
 
 
-def _pct_key(p: float) -> str:
-    return f"{p:g}%"
-
-
 class Profiler:
     """One :class:`Series` per part, the loop series (lateness, overrun, tick duration) and, per actuator,
     the sensing-to-actuation latency (the time a command reached the actuator's output minus the origin of the
@@ -257,11 +299,17 @@ class Profiler:
 
     def __init__(self, window: int = DEFAULT_WINDOW) -> None:
         self.window = window
-        self.parts: dict[str, Series] = {}
+        self.parts: dict[str, Series | TableSeries] = {}
         self.latency: dict[str, Series] = {}
-        self.lateness = Series("tick lateness", window, skip_first=False)
-        self.overrun = Series("tick overrun", window, skip_first=False)
-        self.tick = Series("tick duration", window, skip_first=False)
+        self.lateness: Series | TableSeries = Series("tick lateness", window, skip_first=False)
+        self.overrun: Series | TableSeries = Series("tick overrun", window, skip_first=False)
+        self.tick: Series | TableSeries = Series("tick duration", window, skip_first=False)
+
+    def use_table(self, table: TickTable) -> None:
+        """Read the loop's series (lateness, overrun, tick duration) from a drive's :class:`TickTable`."""
+        self.lateness = TableSeries("tick lateness", table, TickTable.LATENESS, skip_first=False, running=True)
+        self.overrun = TableSeries("tick overrun", table, TickTable.OVERRUN, skip_first=False)
+        self.tick = TableSeries("tick duration", table, TickTable.TICK, skip_first=False)
 
     def series_for(self, name: str) -> Series:
         s = self.parts.get(name)

@@ -397,3 +397,102 @@ def test_a_cancel_message_reaches_the_waiting_task():
                 await task
 
     run_on(uvloop.new_event_loop, main())
+
+
+# ------------------------------------------------------------------------------------------- call_at
+
+
+@pytest.mark.parametrize("precise", [False, True], ids=["default", "precise"])
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_call_at_runs_a_periodic_callback_never_early_until_it_returns_none(loop_factory, wait_mode, precise):
+    async def main() -> tuple[list[float], list[float], DeadlineWaiter]:
+        waiter = DeadlineWaiter(precise=precise)
+        now = time.monotonic
+        t0 = now() + 0.01
+        deadlines = [t0 + k * 0.0041 for k in range(12)]
+        called: list[float] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def job() -> float | None:
+            called.append(now())
+            if len(called) == len(deadlines):
+                done.set_result(None)
+                return None
+            return deadlines[len(called)]
+
+        waiter.call_at(deadlines[0], job)
+        await asyncio.wait_for(done, 5)
+        await asyncio.sleep(0.02)  # a stray extra call would land here
+        waiter.close()
+        return called, deadlines, waiter
+
+    called, deadlines, waiter = run_on(loop_factory, main())
+    assert len(called) == len(deadlines)  # called once per deadline, then no more
+    for t, deadline in zip(called, deadlines, strict=True):
+        assert deadline <= t < deadline + GENEROUS_S
+    assert waiter.waits == len(deadlines)
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_call_at_is_dropped_by_cancel_call_and_a_past_deadline_is_not_called_inline(loop_factory, wait_mode):
+    async def main() -> tuple[list[str], list[str]]:
+        waiter = DeadlineWaiter()
+        calls: list[str] = []
+        waiter.call_at(time.monotonic() + 0.02, lambda: calls.append("cancelled"))
+        waiter.cancel_call()
+        waiter.call_at(time.monotonic() - 1.0, lambda: calls.append("late"))
+        inline = list(calls)  # nothing may run from inside call_at
+        await asyncio.sleep(0.05)
+        waiter.close()
+        return inline, calls
+
+    inline, calls = run_on(loop_factory, main())
+    assert inline == []
+    assert calls == ["late"]
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_call_at_on_the_virtual_clock_fires_at_exact_deadlines():
+    loop = asyncio.get_running_loop()
+    waiter = DeadlineWaiter()
+    t0 = loop.time()
+    seen: list[float] = []
+
+    def job() -> float | None:
+        seen.append(loop.time() - t0)
+        return t0 + 0.05 * (len(seen) + 1) if len(seen) < 5 else None
+
+    waiter.call_at(t0 + 0.05, job)
+    await asyncio.sleep(1.0)
+    assert seen == [pytest.approx(0.05 * k, abs=1e-12) for k in range(1, 6)]
+    waiter.call_at(loop.time() + 0.1, lambda: seen.append(-1.0))
+    waiter.cancel_call()
+    await asyncio.sleep(0.2)
+    assert -1.0 not in seen
+
+
+def test_an_all_sync_car_ticks_from_the_timer_and_a_car_with_an_async_part_from_its_task():
+    """Both ways of driving ticks give the same report on a real loop: ticks never early, none skipped."""
+
+    class Sync:
+        def run(self):
+            return 1
+
+    class Async:
+        async def run(self, x):
+            await asyncio.sleep(0)
+            return x
+
+    reports = {}
+    for name, parts in (("timer", [Sync()]), ("task", [Sync(), Async()])):
+        v = Vehicle()
+        v.add(parts[0], outputs=["x"])
+        if len(parts) > 1:
+            v.add(parts[1], inputs=["x"], outputs=["y"])
+        reports[name] = run_on(uvloop.new_event_loop, v.run(200, 40))
+    for name, r in reports.items():
+        assert r.loops == 40, name
+        assert r.lateness_ms["min"] >= 0.0, name
+        assert r.parts["Sync"]["count"] == 39, name  # the first tick left out, as in Donkeycar
+    assert "Async" in reports["task"].parts

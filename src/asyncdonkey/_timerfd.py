@@ -61,7 +61,11 @@ class Timerfd:
     count on ``timerfd_settime``), so a stale readiness seen after re-arming reads as "not fired".
     """
 
-    __slots__ = ("_arm", "_spec", "fd")
+    __slots__ = ("_spec", "arm", "fd")
+
+    #: ``arm(deadline_ns)``: fire once when ``CLOCK_MONOTONIC`` reaches ``deadline_ns`` (absolute); 0 disarms.
+    #: A plain function held by the instance rather than a method, so a wait costs one Python call, not two.
+    arm: Callable[[int], None]
 
     def __init__(self) -> None:
         if _OS_NATIVE:
@@ -72,7 +76,7 @@ class Timerfd:
             def arm_native(deadline_ns: int) -> None:
                 settime_ns(fd, flags=TFD_TIMER_ABSTIME, initial=deadline_ns)
 
-            self._arm: Callable[[int], None] = arm_native
+            self.arm = arm_native
             return
         if _LIBC is None:
             raise OSError("timerfd is not available on this platform")
@@ -93,11 +97,7 @@ class Timerfd:
                 err = ctypes.get_errno()
                 raise OSError(err, f"timerfd_settime(fd {fd}): {os.strerror(err)}")
 
-        self._arm = arm_libc
-
-    def arm(self, deadline_ns: int) -> None:
-        """Fire once when ``CLOCK_MONOTONIC`` reaches ``deadline_ns`` (absolute); 0 disarms."""
-        self._arm(deadline_ns)
+        self.arm = arm_libc
 
     def fired(self) -> bool:
         """Consume a pending expiry: True if the timer fired since it was last armed."""

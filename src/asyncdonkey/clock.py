@@ -25,11 +25,12 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
 
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
   ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
-  is learned from the wake-up lateness actually observed (the 98th percentile of the recent lateness of the
-  early timer, with a margin), so a quiet machine spins for tens of microseconds, a noisy one for longer, and
-  nobody spins for a guessed constant. The spin never takes more than half a millisecond, nor more than
-  :data:`SPIN_BUDGET` (3 %) of the time between deadlines: preemption on a loaded machine cannot be spun away,
-  only paid for.
+  is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the
+  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
+  ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
+  tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
+  more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
+  preemption on a loaded machine cannot be spun away, only paid for.
 
 Wall-clock time (``time.time()``) is used only where a human or a file needs it, e.g. ``_timestamp_ms`` in
 recorded records.
@@ -49,7 +50,16 @@ from typing import Any, Literal
 
 from . import _timerfd
 
-__all__ = ["TICK_EPS", "TIME_EPS", "Clock", "DeadlineWaiter", "Schedule", "get_clock"]
+__all__ = [
+    "PRECISE_TOLERANCE_S",
+    "SPIN_BUDGET",
+    "TICK_EPS",
+    "TIME_EPS",
+    "Clock",
+    "DeadlineWaiter",
+    "Schedule",
+    "get_clock",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -103,10 +113,12 @@ WaitMode = Literal["timerfd", "loop-timer", "virtual"]
 
 # Precise mode: how the spin window is learned from observed timer lateness.
 _LATE_SAMPLES = 256  # recent lateness samples kept
-_LATE_QUANTILE = 0.98  # higher quantiles chase preemption on a busy machine, which no spin can fix
+_LATE_QUANTILE = 0.99  # the ticks precise mode keeps within its tolerance
 _LATE_REFRESH = 32  # recompute the window every this many samples
-_WINDOW_MARGIN = 1.25  # the window is the quantile times this ...
-_WINDOW_FLOOR_S = 20e-6  # ... at least this (the spin's own check-to-start cost) ...
+#: The lateness precise mode accepts at that quantile: the window is the quantile less this. Spinning the
+#: last few microseconds too would cost CPU on every tick for nothing a car can notice.
+PRECISE_TOLERANCE_S = 20e-6
+_WINDOW_FLOOR_S = 5e-6  # the window is at least this (the spin's own check-to-start cost) ...
 #: ... and at most this: measured on a busy 2-core VM, spinning longer than about half a millisecond made the
 #: next wake-ups *later* (the scheduler's fairness counts the spin against the task), so the window grew, and
 #: the spin with it, until precise mode was less precise than the default.
@@ -519,7 +531,7 @@ class DeadlineWaiter:
         if n % _LATE_REFRESH == 0 or n == 8:
             ordered = sorted(samples)
             q = ordered[min(len(ordered) - 1, int(_LATE_QUANTILE * len(ordered)))]
-            self.spin_window_s = min(max(q * _WINDOW_MARGIN, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
+            self.spin_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

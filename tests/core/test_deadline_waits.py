@@ -208,12 +208,12 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
             late = await _lateness_of_waits(waiter, 64, spacing)
             assert min(late) >= 0.0
             assert max(late) < GENEROUS_S
-            # the window now comes from what was observed: a high quantile of the early timer's lateness, with
-            # a margin, within the floor and the budget (a share of the time between deadlines)
+            # the window now comes from what was observed: a high quantile of the early timer's lateness less
+            # the tolerance precise mode accepts, within the floor and the ceiling
             samples = sorted(waiter._late)
             assert len(samples) > 32
             q = samples[min(len(samples) - 1, int(clock._LATE_QUANTILE * len(samples)))]
-            expected = min(max(q * clock._WINDOW_MARGIN, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
+            expected = min(max(q - clock.PRECISE_TOLERANCE_S, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
             assert waiter.spin_window_s == pytest.approx(expected)
             assert waiter.spin_window_s != start_window or expected == start_window
             return late

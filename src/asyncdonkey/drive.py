@@ -17,8 +17,8 @@ import concurrent.futures
 import logging
 import math
 import threading
-from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from collections.abc import Callable, Generator
+from typing import TYPE_CHECKING, Any
 
 from .clock import Clock, DeadlineWaiter, Schedule
 from .errors import PartError
@@ -39,15 +39,6 @@ logger = logging.getLogger("asyncdonkey.loop")
 
 #: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
 _TIME_EPS = 1e-9
-
-
-class TickPieces(NamedTuple):
-    """The tick's pieces for one drive (see :meth:`Drive._tick_pieces`)."""
-
-    begin: Callable[[float], float]
-    run_parts: Callable[[tuple[Any, ...]], None]
-    run_awaited: Callable[[Entry], Awaitable[None]]
-    end: Callable[[float], None]
 
 
 class Drive:
@@ -255,53 +246,42 @@ class Drive:
     ) -> None:
         """Tick until a limit, a stop, an error or cancellation; counters are kept on ``self`` throughout.
 
-        How the ticks are driven is decided here, once: when no part of the tick awaits (sync parts, pipelined
-        kickers), each tick runs straight from the deadline timer's callback (:meth:`_ticks_from_timer`); a wake-up
-        then costs no task resume, coroutine frames or awaitable, which on a small board is most of what waking up
-        costs. Otherwise this task waits for each deadline and awaits its awaiting parts in order
-        (:meth:`_ticks_in_task`). Both run the same pieces: :meth:`_tick_pieces` builds them for this drive.
+        The ticks themselves are one generator (:meth:`_ticks`), flat, its hot names fast locals. It yields the
+        next deadline when it has to wait, and an awaitable when a part's call must be awaited. Who drives it is
+        decided here, once:
+
+        * no part of the tick awaits (sync parts, pipelined kickers): the deadline timer's own loop callback
+          resumes it (:meth:`DeadlineWaiter.call_at`), so a wake-up costs no task resume, no coroutine frames and
+          no awaitable, which on a small board is most of what waking up costs;
+        * otherwise this task resumes it: it waits for each deadline it yields and awaits each awaitable, sending
+          the result back in (or throwing the exception in).
         """
         self.task = asyncio.current_task()
-        t0 = self.clock.now()
-        self.first_start = self.last_start = self.last_end = t0
-        sched = Schedule(rate_hz, t0)
-        end_at = None if duration is None else t0 + duration
-        pieces = self._tick_pieces(sched, verbose, report_every)
-
-        def next_deadline() -> float | None:
-            """The next tick's deadline, or None when the drive is to end (the reason noted)."""
-            if self.stop_requested:
-                return None
-            if max_loop_count is not None and self.loops >= max_loop_count:
-                self.stop_reason = self.stop_reason or "max_loop_count"
-                return None
-            deadline = sched.deadline
-            if end_at is not None and deadline >= end_at:
-                self.stop_reason = self.stop_reason or "duration"
-                return None
-            return deadline
-
-        segments = _segments(self.tick_entries)
-        if len(segments) == 1 and segments[0][1] is None:
-            await self._ticks_from_timer(next_deadline, segments[0][0], pieces)
+        ticks = self._ticks(rate_hz, max_loop_count, duration, verbose, report_every)
+        if any(e.awaits for e in self.tick_entries):
+            await self._drive_from_task(ticks)
         else:
-            await self._ticks_in_task(next_deadline, segments, pieces)
+            await self._drive_from_timer(ticks)
         self.stop_reason = self.stop_reason or "stop()"
 
-    def _tick_pieces(self, sched: Schedule, verbose: bool, report_every: int) -> TickPieces:
-        """The tick as closures over what it touches (bound once per drive, read as fast locals):
+    def _ticks(
+        self,
+        rate_hz: float,
+        max_loop_count: int | None,
+        duration: float | None,
+        verbose: bool,
+        report_every: int,
+    ) -> Generator[Any, Any, None]:
+        """The drive's ticks. Yields a deadline (float) to be resumed at, or an awaitable whose result (or
+        exception) is to be sent (thrown) back in; returns when the drive is to end, the reason noted.
 
-        * ``begin(deadline) -> start`` and ``end(start)``: the loop's own bookkeeping;
-        * ``run_parts(entries)``: a run of parts that do not await, called in order;
-        * ``run_awaited(entry)``: one part whose call is awaited (a coroutine, or a run offloaded to a thread).
-
-        Timing goes into one row of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline and the
-        tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its run
-        condition), the tick's end. A part starts when the one before it ended, so one clock read per part is
+        Timing goes into one row per tick of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline
+        and the tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its
+        run condition), the tick's end. A part starts when the one before it ended, so one clock read per part is
         enough; lateness, durations and overruns are worked out from the rows when a report asks.
         """
         now = self.clock.now
-        period = sched.period
+        entries = self.tick_entries
         d = self.mem.d
         origins = self.mem.origins
         dormant = self.mem.dormant
@@ -315,13 +295,24 @@ class Drive:
         part_failed = self._part_failed
         report_block = self._report_block
         jitter_log = LogThrottle(1.0)
-        inf = math.inf
         nan = math.nan
-        pos = 0  # where the next time of this tick's row goes in buf
-        t = 0.0  # when the previous part (or the tick) ended
-
-        def begin(deadline: float) -> float:
-            nonlocal pos, t
+        t0 = now()
+        self.first_start = self.last_start = self.last_end = t0
+        sched = Schedule(rate_hz, t0)
+        period = sched.period
+        end_at = None if duration is None else t0 + duration
+        while not self.stop_requested:
+            if max_loop_count is not None and self.loops >= max_loop_count:
+                self.stop_reason = self.stop_reason or "max_loop_count"
+                return
+            deadline = sched.deadline
+            if end_at is not None and deadline >= end_at:
+                self.stop_reason = self.stop_reason or "duration"
+                return
+            if now() < deadline:
+                yield deadline
+                if self.stop_requested:
+                    return
             self.last_start = t = start = now()
             loops = self.loops
             if loops == 0:
@@ -333,10 +324,7 @@ class Drive:
             buf[pos + 1] = start
             pos += 2
             table.begun = loops + 1
-            return start
 
-        def run_parts(entries: tuple[Any, ...]) -> None:
-            nonlocal pos, t
             for e in entries:
                 cond = e.run_condition
                 if cond is not None and not d.get(cond):
@@ -350,14 +338,29 @@ class Drive:
                 try:
                     args = e.args()
                     r = e.call(*args)
+                    if e.awaits:
+                        self._awaiting = r
+                        try:
+                            r = yield r
+                        finally:
+                            self._awaiting = None
                     t_end = now()
                     if r is not None and e.store is not None:
                         e.store(r, args, t_end)
                         if e.kicks:
                             after_store(e, origins)
+                except asyncio.CancelledError:
+                    if not self._grace_cancel:
+                        raise
+                    # cancelled by the stop grace, not by our caller: the part failed, the stop goes on
+                    self._grace_cancel = False
+                    if self.task is not None:
+                        self.task.uncancel()
+                    t_end = now()
+                    e.errors += 1
                 except Exception as exc:
                     t_end = now()
-                    part_failed(e, self.loops, exc, t_end)
+                    part_failed(e, loops, exc, t_end)
                 except PartInterrupted as exc:  # a stop request's grace ran out inside this sync part
                     t_end = now()
                     e.errors += 1
@@ -369,149 +372,84 @@ class Drive:
                 if t_end - t > block_report_s and e.is_sync_inline:
                     report_block(e, t_end - t, t_end)
                 t = t_end
-
-        async def run_awaited(e: Entry) -> None:
-            nonlocal pos, t
-            cond = e.run_condition
-            if cond is not None and not d.get(cond):
-                if e.outputs:
-                    dormant.update(e.outputs)
-                buf[pos] = nan
-                pos += 1
-                return
-            self.current = e
-            self.part_started = t
-            try:
-                args = e.args()
-                self._awaiting = r = e.call(*args)
-                try:
-                    r = await r
-                finally:
-                    self._awaiting = None
-                t_end = now()
-                if r is not None and e.store is not None:
-                    e.store(r, args, t_end)
-                    if e.kicks:
-                        after_store(e, origins)
-            except asyncio.CancelledError:
-                if not self._grace_cancel:
-                    raise
-                # cancelled by the stop grace, not by our caller: the part failed, the stop goes on
-                self._grace_cancel = False
-                if self.task is not None:
-                    self.task.uncancel()
-                t_end = now()
-                e.errors += 1
-            except Exception as exc:
-                t_end = now()
-                part_failed(e, self.loops, exc, t_end)
-            except PartInterrupted as exc:
-                t_end = now()
-                e.errors += 1
-                logger.error("%s", exc)
-            buf[pos] = t_end
-            pos += 1
-            if e.latency is not None:
-                e.latency(t_end)
-            t = t_end
-
-        def end(start: float) -> None:
             self.current = None
-            self.part_started = inf
-            self.last_end = t_end = now()
-            buf[pos] = t_end
+            self.part_started = math.inf
+
+            self.last_end = end = now()
+            buf[pos] = end
             commit()
-            self.loops += 1
-            over = t_end - start - period
+            self.loops = loops + 1
+            over = end - start - period
             if over > _TIME_EPS:
                 self.overruns += 1
-                more = jitter_log.ready("jitter", t_end) if verbose else None
+                more = jitter_log.ready("jitter", end) if verbose else None
                 if more is not None:
                     logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
             if verbose and report_every and self.loops % report_every == 0:
                 logger.info("%s", profiler.table())
             # more than a period behind: the missed deadlines are skipped and counted, never burst
-            self.skipped += sched.advance(t_end)
+            self.skipped += sched.advance(end)
 
-        return TickPieces(begin, run_parts, run_awaited, end)
-
-    async def _ticks_from_timer(
-        self,
-        next_deadline: Callable[[], float | None],
-        entries: tuple[Any, ...],
-        pieces: TickPieces,
-    ) -> None:
+    async def _drive_from_timer(self, ticks: Generator[Any, Any, None]) -> None:
         """Every tick runs from the deadline timer's callback; this task only waits for the drive to end.
 
         The future it waits on is also the drive's wake future: a stop request completes it (and the timer call is
         dropped), the last tick completes it, and an exception out of a tick (a part failing with
-        ``on_error="stop"``) is set on it and raised here. A tick that ends past the next deadline runs the next
-        one at once, as the task-driven ticks do.
+        ``on_error="stop"``) is set on it and raised here.
         """
-        begin, run_parts, end = pieces.begin, pieces.run_parts, pieces.end
         done = self._wake = self.loop.create_future()
-        waiter = self.waiter
-        now = self.clock.now
-        deadline = next_deadline()
+        resume = ticks.send
 
         def on_deadline() -> float | None:
-            """Run the tick due now (and the next ones at once while behind); return the next deadline."""
-            nonlocal deadline
+            """Run the ticks due now; return the deadline to be called back at, or None when the drive ends."""
             if done.done():  # the drive was cancelled (or stopped) while this call was queued
                 return None
             try:
-                while deadline is not None and not self.stop_requested:
-                    start = begin(deadline)
-                    run_parts(entries)
-                    end(start)
-                    deadline = next_deadline()
-                    if deadline is not None and now() < deadline:
-                        return deadline
-                if not done.done():
-                    done.set_result(None)
+                return resume(None)  # type: ignore[no-any-return]
+            except StopIteration:
+                done.set_result(None)
             except BaseException as exc:  # the drive's error: raised by the waiting task, after the safe state
-                if not done.done():
-                    done.set_exception(exc)
+                done.set_exception(exc)
             return None
 
-        if deadline is None or self.stop_requested:
-            return
-        if now() >= deadline:
-            deadline = on_deadline()
+        deadline = on_deadline()  # the first tick is due at once
+        waiter = self.waiter
         if deadline is not None:
             waiter.call_at(deadline, on_deadline)
         try:
             await done
         finally:
             waiter.cancel_call()
+            ticks.close()
 
-    async def _ticks_in_task(
-        self,
-        next_deadline: Callable[[], float | None],
-        segments: tuple[tuple[tuple[Any, ...], Entry | None], ...],
-        pieces: TickPieces,
-    ) -> None:
-        """This task waits for each deadline, runs the tick's runs of sync parts and awaits each awaiting part."""
-        begin, run_parts, run_awaited, end = pieces
+    async def _drive_from_task(self, ticks: Generator[Any, Any, None]) -> None:
+        """This task resumes the ticks: it waits for each deadline they yield and awaits each awaitable."""
         loop = self.loop
         now = self.clock.now
         waiter = self.waiter
-        while (deadline := next_deadline()) is not None:
-            if now() < deadline:
-                wake = self._wake
-                if wake is None:  # one per drive: a stop request completes it, and then the drive ends
-                    self._wake = wake = loop.create_future()
-                    if self.stop_requested:  # stop() raced with the new future
-                        break
-                await waiter.wait_until(deadline, wake)
-                if self.stop_requested:
-                    break
-            start = begin(deadline)
-            for entries, awaited in segments:
-                run_parts(entries)
-                if awaited is not None:
-                    await run_awaited(awaited)
-            end(start)
+        send, throw = ticks.send, ticks.throw
+        try:
+            step = send(None)
+            while True:
+                if step.__class__ is float:
+                    if now() < step:
+                        wake = self._wake
+                        if wake is None:  # one per drive: a stop request completes it, and then the drive ends
+                            self._wake = wake = loop.create_future()
+                        if not self.stop_requested:
+                            await waiter.wait_until(step, wake)
+                    step = send(None)
+                    continue
+                try:
+                    result = await step
+                except BaseException as exc:
+                    step = throw(exc)
+                else:
+                    step = send(result)
+        except StopIteration:
+            return
+        finally:
+            ticks.close()
 
     def _part_failed(self, e: Entry, tick: int, exc: Exception, now: float) -> None:
         e.errors += 1
@@ -559,21 +497,6 @@ class Drive:
         r.shutdown_abandoned = list(self.abandoned)
         r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
-
-
-def _segments(entries: tuple[Any, ...]) -> tuple[tuple[tuple[Any, ...], Entry | None], ...]:
-    """The tick's entries as ``(run of entries that do not await, the awaiting entry after it or None)``."""
-    out: list[tuple[tuple[Any, ...], Entry | None]] = []
-    run: list[Any] = []
-    for e in entries:
-        if e.awaits:
-            out.append((tuple(run), e))
-            run = []
-        else:
-            run.append(e)
-    if run or not out:
-        out.append((tuple(run), None))
-    return tuple(out)
 
 
 def latency_recorder(profiler: Profiler, name: str) -> Callable[[float, float], None]:

@@ -30,12 +30,17 @@ TFD_NONBLOCK = os.O_NONBLOCK
 TFD_CLOEXEC = getattr(os, "O_CLOEXEC", 0o2000000)
 
 
-def _libc_functions() -> tuple[Callable[..., int], Callable[..., int]] | None:
+def _libc_functions() -> tuple[Callable[..., int], Callable[..., int], Callable[..., int]] | None:
+    """``timerfd_create`` and ``timerfd_settime`` with errno kept, and ``timerfd_settime`` bare: the arming on
+    every wait goes through the bare one (no argument conversion, no errno bookkeeping: about a third cheaper)
+    and only a failure is repeated through the checked one, for its errno."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        name = ctypes.util.find_library("c") or "libc.so.6"
+        libc = ctypes.CDLL(name, use_errno=True)
         create, settime = libc.timerfd_create, libc.timerfd_settime
+        bare_settime = ctypes.CDLL(name).timerfd_settime
     except (OSError, AttributeError):
         return None
     create.argtypes = (ctypes.c_int, ctypes.c_int)
@@ -44,7 +49,8 @@ def _libc_functions() -> tuple[Callable[..., int], Callable[..., int]] | None:
     # 64-bit and 32-bit ARM alike); it is passed as the address of an array('l'), see Timerfd
     settime.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
     settime.restype = ctypes.c_int
-    return create, settime
+    bare_settime.restype = ctypes.c_int  # called with (int, int, c_void_p, None): nothing left to convert
+    return create, settime, bare_settime
 
 
 _OS_NATIVE = hasattr(os, "timerfd_create") and hasattr(os, "timerfd_settime_ns")
@@ -80,7 +86,7 @@ class Timerfd:
             return
         if _LIBC is None:
             raise OSError("timerfd is not available on this platform")
-        create, settime = _LIBC
+        create, settime, bare_settime = _LIBC
         fd = create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC)
         if fd < 0:
             err = ctypes.get_errno()
@@ -90,10 +96,11 @@ class Timerfd:
         # store is much cheaper than a ctypes Structure field, and nothing is allocated per deadline
         spec = self._spec = array("l", bytes(4 * array("l").itemsize))
         address = spec.buffer_info()[0]
+        pointer = ctypes.c_void_p(address)
 
         def arm_libc(deadline_ns: int) -> None:
             spec[2], spec[3] = divmod(deadline_ns, 1_000_000_000)
-            if settime(fd, TFD_TIMER_ABSTIME, address, None) != 0:
+            if bare_settime(fd, TFD_TIMER_ABSTIME, pointer, None) != 0 and settime(fd, 1, address, None) != 0:
                 err = ctypes.get_errno()
                 raise OSError(err, f"timerfd_settime(fd {fd}): {os.strerror(err)}")
 

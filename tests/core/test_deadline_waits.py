@@ -496,3 +496,15 @@ def test_an_all_sync_car_ticks_from_the_timer_and_a_car_with_an_async_part_from_
         assert r.lateness_ms["min"] >= 0.0, name
         assert r.parts["Sync"]["count"] == 39, name  # the first tick left out, as in Donkeycar
     assert "Async" in reports["task"].parts
+
+
+def test_arming_a_timerfd_that_is_gone_raises_oserror_with_its_errno():
+    import errno
+
+    tfd = _timerfd.Timerfd()
+    fd = tfd.fd
+    os.close(fd)
+    tfd.fd = -1  # closed behind its back: nothing left for close() to do
+    with pytest.raises(OSError) as info:
+        tfd.arm(time.monotonic_ns() + 10**9)
+    assert info.value.errno in (errno.EBADF, errno.EINVAL)  # EINVAL if the number was reused meanwhile

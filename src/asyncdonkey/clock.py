@@ -303,9 +303,35 @@ class DeadlineWaiter:
         weakref.finalize(self, tfd.close)
 
     # ------------------------------------------------------------------------------------------ callbacks
-    def _on_timerfd(self, tfd: _timerfd.Timerfd) -> None:
-        if self._call is not None:
-            self._fire_call()
+    def _on_timerfd(self, tfd: _timerfd.Timerfd | None) -> None:
+        """The timerfd is readable (or, with ``tfd`` None, the loop timer fired): run a pending :meth:`call_at`
+        callback, re-arming for the deadline it returns, or resume the waiting task."""
+        callback = self._call
+        if callback is not None:
+            t = self._now()
+            target = self._call_target
+            if t < target:  # a readiness left from an earlier arming, or a loop timer rounded early: not yet
+                self._arm(target, t)
+                return
+            self._call = None
+            if self.precise:
+                self._learn(t - target)
+                deadline = self._call_deadline
+                now = self._now
+                while t < deadline:  # the last stretch is spun on the clock
+                    t = now()
+            # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series,
+            # the next readiness finds nothing pending and consumes the expiry then.
+            deadline = callback()
+            if deadline is not None and self._call is None:
+                self._call = callback
+                self._call_deadline = deadline
+                target = self._call_target = self._target(deadline) if self.precise else deadline
+                self.waits += 1
+                if tfd is not None and tfd is self._tfd:
+                    tfd.arm(math.ceil(target * 1e9))
+                else:
+                    self._arm(target, self._now())
             return
         wakeup = self._wakeup
         if wakeup.waiting:
@@ -313,15 +339,12 @@ class DeadlineWaiter:
             # comes back here not waiting and reads it then. One syscall less per wait; a stale readiness
             # cannot end a wait early, the waiter re-checks the clock.
             wakeup.fire()
-        else:
+        elif tfd is not None:
             tfd.fired()
 
     def _on_loop_timer(self) -> None:
         self._handle = None
-        if self._call is not None:
-            self._fire_call()
-            return
-        self._wakeup.fire()
+        self._on_timerfd(None)
 
     def _on_wake(self, _wake: object) -> None:
         fut = self._vfut
@@ -435,36 +458,6 @@ class DeadlineWaiter:
                 self._handle = None
         else:
             self._disarm()
-
-    def _fire_call(self) -> None:
-        """The timer fired with a :meth:`call_at` pending: call back (and re-arm for the deadline it returns),
-        or re-arm if this was a stale readiness."""
-        t = self._now()
-        target = self._call_target
-        if t < target:  # a readiness left from an earlier arming, or a loop timer rounded early: not yet
-            self._arm(target, t)
-            return
-        callback = self._call
-        self._call = None
-        if self.precise:
-            self._learn(t - target)
-            deadline = self._call_deadline
-            now = self._now
-            while t < deadline:  # the last stretch is spun on the clock
-                t = now()
-        # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series, the next
-        # readiness finds nothing pending and consumes the expiry then.
-        deadline = callback()
-        if deadline is not None and self._call is None:
-            self._call = callback
-            self._call_deadline = deadline
-            target = self._call_target = self._target(deadline) if self.precise else deadline
-            self.waits += 1
-            tfd = self._tfd
-            if tfd is not None:
-                tfd.arm(math.ceil(target * 1e9))
-            else:
-                self._arm(target, self._now())
 
     def _virtual_arm(self, deadline: float) -> None:
         # An exact loop timer whose callback is queued for the next pass, as a task woken by a timer would be:

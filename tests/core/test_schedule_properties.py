@@ -81,11 +81,13 @@ def test_schedule_object_follows_the_documented_rule(durations, rate_hz, t0):
     sched = Schedule(rate_hz, t0)
     end = t0
     starts = []
+    assert sched.deadline == t0
     for d in durations:
         start = max(end, sched.deadline)
         starts.append(start)
         end = start + d / 1000
         sched.advance(end)
+        assert sched.deadline == t0 + sched.k / rate_hz  # the same float, computed from t0: no drift
     assert [round((s - t0) * 1000, 3) for s in starts] == expected_starts
     assert sched.skipped == expected_skipped
 
@@ -96,6 +98,18 @@ def test_schedule_skips_only_when_more_than_a_period_behind_and_never_bursts():
     assert s.advance(0.3 - 1e-15) == 0 and s.k == 2  # a few ulps short of "a period behind" is not behind
     assert s.advance(0.55) == 2  # deadlines 0.3 and 0.4 missed: resume at 0.5, already passed
     assert s.k == 5 and s.deadline == pytest.approx(0.5) and s.skipped == 2
+
+
+def test_schedule_deadline_is_computed_from_t0_not_summed():
+    """100,000 on-time ticks at 1 kHz: every deadline is exactly t0 + k / rate (adding periods would drift)."""
+    t0 = 86_400.123456789
+    s = Schedule(1000, t0)
+    summed = t0
+    for k in range(1, 100_001):
+        assert s.advance(s.deadline) == 0  # each tick ends the moment it is due
+        summed += s.period
+        assert s.k == k and s.deadline == t0 + k / 1000
+    assert s.skipped == 0 and summed != s.deadline  # the sum has drifted; the schedule has not
 
 
 def test_schedule_rejects_a_rate_that_is_not_positive_and_finite():

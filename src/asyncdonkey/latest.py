@@ -51,7 +51,8 @@ class Latest(Generic[T]):
     def publish(self, value: T, timestamp: float) -> Sample[T]:
         """Make ``value``, taken at ``timestamp`` (runtime clock), the newest sample and tell the subscribers.
 
-        One producer per cell: the sequence number is the previous sample's plus one.
+        One producer per cell: the sequence number is the previous sample's plus one. (A hardware poller's
+        thread does the same inline, see ``Poller._poll_blocking``: keep the two in step.)
         """
         prev = self.sample
         sample = self.sample = _new_sample(Sample, (value, timestamp, 1 if prev is None else prev.seq + 1))

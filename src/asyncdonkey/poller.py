@@ -158,15 +158,16 @@ class Poller(Generic[T]):
         prev = cell.sample
         seq = 0 if prev is None else prev.seq  # a restarted poller goes on numbering its samples
         read = self.read
+        new_sample, sample_type, stop_check = _new_sample, Sample, STOP_CHECK_S  # locals: no globals touched
         sched = Schedule(self.rate_hz, now())
         t0, rate, k = sched.t0, sched.rate_hz, sched.k
         behind = sched.period + TIME_EPS  # Schedule.advance's test for "more than a period behind"
         deadline = t = sched.deadline
         while True:
             left = deadline - t
-            if left > 0:  # sleeps at least the time left: never early
-                if left > STOP_CHECK_S:  # a slow poller still sees shutdown() within STOP_CHECK_S
-                    sleep(STOP_CHECK_S)
+            if left > 0.0:  # sleeps at least the time left: never early (a float constant: the fast compare)
+                if left > stop_check:  # a slow poller still sees shutdown() within STOP_CHECK_S
+                    sleep(stop_check)
                     if not self._running:
                         return
                     t = now()
@@ -188,7 +189,7 @@ class Poller(Generic[T]):
             else:
                 t = now()
                 seq += 1
-                cell.sample = _new_sample(Sample, (value, t, seq))  # Latest.publish, inline
+                cell.sample = new_sample(sample_type, (value, t, seq))  # Latest.publish, inline
                 subscribers = cell._subscribers
                 if subscribers:
                     for callback in subscribers:

@@ -87,7 +87,7 @@ class Schedule:
         self.rate_hz = float(rate_hz)
         self.period = 1.0 / self.rate_hz
         self.t0 = t0
-        #: Number of the current tick; moved only by :meth:`advance`.
+        #: Number of the current tick (:meth:`advance` moves it, and :attr:`deadline` with it).
         self.k = 0
         #: When the current tick (number :attr:`k`) is due: ``t0 + k / rate_hz``. A plain attribute that
         #: :meth:`advance` keeps up to date (a hot loop reads it once per tick; a property would cost a call).

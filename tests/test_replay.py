@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import json
+import os
 import re
 import subprocess
 import sys
@@ -188,7 +189,9 @@ def test_records_reach_the_pilot_at_their_recorded_times(recorded):
 
 def test_real_time_speed_keeps_the_recorded_pace(tmp_path):
     tub = record_tub(tmp_path / "tub", ticks=29)  # 28 gaps of 50 ms: 1.4 s recorded
+    fds = set(os.listdir("/proc/self/fd"))
     report = replay(tub, lambda image: (0.0, 0.0), speed=10.0)
+    assert set(os.listdir("/proc/self/fd")) <= fds  # the player's timer (one for every tick) is released
     offsets = np.array([row.at_s for row in report.rows])
     stamps = np.array([r["_timestamp_ms"] for r in Tub(tub)], dtype=np.float64)
     due = (stamps - stamps[0]) / 1000.0 / 10.0

@@ -79,7 +79,7 @@ class Schedule:
     the latest deadline already passed. A backlog is never run back to back (no burst).
     """
 
-    __slots__ = ("k", "period", "rate_hz", "skipped", "t0")
+    __slots__ = ("deadline", "k", "period", "rate_hz", "skipped", "t0")
 
     def __init__(self, rate_hz: float, t0: float) -> None:
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
@@ -87,25 +87,28 @@ class Schedule:
         self.rate_hz = float(rate_hz)
         self.period = 1.0 / self.rate_hz
         self.t0 = t0
+        #: Number of the current tick (:meth:`advance` moves it, and :attr:`deadline` with it).
         self.k = 0
+        #: When the current tick (number :attr:`k`) is due: ``t0 + k / rate_hz``. A plain attribute that
+        #: :meth:`advance` keeps up to date (a hot loop reads it once per tick; a property would cost a call).
+        self.deadline = t0 + self.k / self.rate_hz
         self.skipped = 0
-
-    @property
-    def deadline(self) -> float:
-        """When the current tick (number :attr:`k`) is due."""
-        return self.t0 + self.k / self.rate_hz
 
     def advance(self, end: float) -> int:
         """The current tick's work ended at ``end``: move to the next deadline. Returns the deadlines skipped."""
         rate = self.rate_hz
+        t0 = self.t0
         k = self.k + 1
-        if end - (self.t0 + k / rate) > self.period + TIME_EPS:
-            behind = math.floor((end - self.t0) * rate + TICK_EPS)
+        deadline = t0 + k / rate
+        if end - deadline > self.period + TIME_EPS:
+            behind = math.floor((end - t0) * rate + TICK_EPS)
             missed = behind - k
             self.skipped += missed
             self.k = behind
+            self.deadline = t0 + behind / rate
             return missed
         self.k = k
+        self.deadline = deadline
         return 0
 
 

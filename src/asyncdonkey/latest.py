@@ -3,23 +3,29 @@
 A producer (a hardware poller, a camera thread, a serial reader) calls :meth:`Latest.publish`; the tick reads
 :attr:`Latest.sample`. Publishing swaps one attribute to a new immutable :class:`Sample`, which is atomic
 under the GIL, so readers in other threads never see a value paired with the wrong timestamp.
+
+A :class:`Sample` is a named tuple rather than a frozen dataclass: a producer thread builds one per value right
+after waking up, when every line of Python is at its most expensive (cold caches), and :meth:`Latest.publish`
+builds it with ``tuple.__new__`` alone, in C, where a frozen dataclass runs an ``__init__`` that sets each field
+through ``object.__setattr__``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Generic, NamedTuple, TypeVar
 
 __all__ = ["Latest", "Sample"]
 
 T = TypeVar("T")
 
 
-@dataclass(frozen=True, slots=True)
-class Sample(Generic[T]):
-    """One published value, when it was taken (runtime clock, seconds) and its sequence number (1, 2, ...)."""
+class Sample(NamedTuple, Generic[T]):
+    """One published value, when it was taken (runtime clock, seconds) and its sequence number (1, 2, ...).
+
+    Immutable; being a tuple it also unpacks (``value, timestamp, seq = sample``) and compares field by field.
+    """
 
     value: T
     timestamp: float
@@ -28,6 +34,9 @@ class Sample(Generic[T]):
     def age(self, now: float) -> float:
         """Seconds since this sample was taken, on the same clock as ``now``."""
         return now - self.timestamp
+
+
+_new_sample = tuple.__new__  # Sample's fields in one C call, without the generated Python __new__
 
 
 class Latest(Generic[T]):
@@ -40,11 +49,17 @@ class Latest(Generic[T]):
         self._subscribers: tuple[Callable[[T, float], None], ...] = ()
 
     def publish(self, value: T, timestamp: float) -> Sample[T]:
+        """Make ``value``, taken at ``timestamp`` (runtime clock), the newest sample and tell the subscribers.
+
+        One producer per cell: the sequence number is the previous sample's plus one. (A hardware poller's
+        thread does the same inline, see ``Poller._poll_blocking``: keep the two in step.)
+        """
         prev = self.sample
-        sample = Sample(value, timestamp, 1 if prev is None else prev.seq + 1)
-        self.sample = sample
-        for callback in self._subscribers:
-            callback(value, timestamp)
+        sample = self.sample = _new_sample(Sample, (value, timestamp, 1 if prev is None else prev.seq + 1))
+        subscribers = self._subscribers
+        if subscribers:
+            for callback in subscribers:
+                callback(value, timestamp)
         return sample
 
     def subscribe(self, callback: Callable[[T, float], None]) -> Callable[[], None]:

@@ -20,6 +20,10 @@ How it runs, and why:
   thread costs one wake-up per sample. It sleeps with ``time.sleep`` (measured cheaper per wake-up than a
   timed lock or a timerfd read) for the time left to the deadline, at most :data:`STOP_CHECK_S` at a time, so
   after :meth:`Poller.shutdown` a slow poller's thread still ends within that time and never reads again.
+  A sample's CPU is mostly that wake-up, after which every line of Python runs on cold caches, so the thread
+  does as little as it can per sample: one clock read (the sample's timestamp, which also says how long to
+  sleep), no method or property calls of its own (it publishes and follows the schedule inline), and on Linux
+  no clock read after the sleep (``time.sleep`` there is an absolute wait that cannot return early).
 * **On the virtual clock** it waits on exact loop timers and reads through a one-thread executor, whose work
   the virtual loop waits for without moving time: a read takes no virtual time and samples land exactly on
   their deadlines, run after run.
@@ -31,19 +35,27 @@ import asyncio
 import concurrent.futures
 import contextlib
 import logging
+import sysconfig
 import threading
 import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-from .clock import Clock, DeadlineWaiter, Schedule, get_clock
-from .latest import Latest, Sample
+from .clock import TIME_EPS, Clock, DeadlineWaiter, Schedule, get_clock
+from .latest import Latest, Sample, _new_sample
 from .ratelimit import LogThrottle
 
 __all__ = ["STOP_CHECK_S", "Poller"]
 
 #: Longest single sleep of a poller thread: how late a slow poller's thread may notice shutdown().
 STOP_CHECK_S = 0.1
+
+#: ``time.sleep`` sleeps until an absolute ``CLOCK_MONOTONIC`` time (``clock_nanosleep(TIMER_ABSTIME)``, Python
+#: 3.11+ where the C library has it: Linux, the BSDs), computed from the clock when it is called and rounded up,
+#: and resumes that same sleep after a signal. Then ``sleep(deadline - t)`` with ``t`` taken from
+#: ``time.monotonic()`` earlier never returns before ``deadline``, and the thread need not read the clock again
+#: to check. Elsewhere it does check.
+_SLEEP_UNTIL_MONOTONIC = bool(sysconfig.get_config_var("HAVE_CLOCK_NANOSLEEP"))
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -68,7 +80,6 @@ class Poller(Generic[T]):
         self.rate_hz = float(rate_hz)
         self.name = name or getattr(read, "__qualname__", "poller")
         self.latest: Latest[T] = Latest()
-        self.reads = 0
         self.errors = 0
         self.skipped = 0
         self.last_error: BaseException | None = None
@@ -80,12 +91,18 @@ class Poller(Generic[T]):
     def sample(self) -> Sample[T] | None:
         return self.latest.sample
 
+    @property
+    def reads(self) -> int:
+        """Reads that succeeded so far: the sequence number of the newest sample (nothing to count per read)."""
+        s = self.latest.sample
+        return 0 if s is None else s.seq
+
     def run(self) -> T | None:
         s = self.latest.sample
         if s is None:
             return None
-        self._origin = s.timestamp
-        return s.value
+        self._origin = s[1]  # s.timestamp, s.value: indexing a tuple is the interpreter's fast path, each tick
+        return s[0]
 
     def output_origin(self) -> float | None:
         """When the value ``run()`` returned was read: re-publishing it on later ticks does not make it young."""
@@ -120,34 +137,70 @@ class Poller(Generic[T]):
 
     def _thread_main(self, clock: Clock, loop: asyncio.AbstractEventLoop, done: asyncio.Future[None]) -> None:
         now = clock.now
-        sleep = time.sleep
-        read = self.read
-        publish = self.latest.publish
-        sched = Schedule(self.rate_hz, now())
         try:
-            while self._running:
-                deadline = sched.deadline
-                t = now()
-                while t < deadline:  # sleeps at least the time left: never early
-                    left = deadline - t
-                    sleep(left if left < STOP_CHECK_S else STOP_CHECK_S)
-                    if not self._running:
-                        return
-                    t = now()
-                try:
-                    value = read()
-                except Exception as exc:
-                    t = now()
-                    self._read_failed(exc, t)
-                else:
-                    t = now()
-                    publish(value, t)
-                    self.reads += 1
-                if sched.advance(t):
-                    self.skipped = sched.skipped
+            self._poll_blocking(now, time.sleep, recheck=not (_SLEEP_UNTIL_MONOTONIC and now is time.monotonic))
         finally:
             with contextlib.suppress(RuntimeError):  # the loop is already closed: nobody is waiting
                 loop.call_soon_threadsafe(_set_done, done)
+
+    def _poll_blocking(self, now: Callable[[], float], sleep: Callable[[float], object], recheck: bool) -> None:
+        """The poller thread's loop, until :meth:`shutdown`: ``sleep(seconds)`` blocks, ``now()`` reads the clock.
+
+        ``recheck``: read the clock after every sleep and sleep again if it woke before the deadline (needed
+        unless ``sleep`` is known never to return early, see :data:`_SLEEP_UNTIL_MONOTONIC`).
+
+        Per sample, on time: one check of ``_running``, ``read()``, one clock read, then what
+        :meth:`Latest.publish` and the on-time case of :meth:`Schedule.advance
+        <asyncdonkey.clock.Schedule.advance>` do, inline (the module docstring says why). An overrun of more
+        than a period goes to the :class:`Schedule`, which decides what to skip.
+        """
+        cell = self.latest
+        prev = cell.sample
+        seq = 0 if prev is None else prev.seq  # a restarted poller goes on numbering its samples
+        read = self.read
+        new_sample, sample_type, stop_check = _new_sample, Sample, STOP_CHECK_S  # locals: no globals touched
+        sched = Schedule(self.rate_hz, now())
+        t0, rate, k = sched.t0, sched.rate_hz, sched.k
+        behind = sched.period + TIME_EPS  # Schedule.advance's test for "more than a period behind"
+        deadline = t = sched.deadline
+        while True:
+            left = deadline - t
+            if left > 0.0:  # sleeps at least the time left: never early (a float constant: the fast compare)
+                if left > stop_check:  # a slow poller still sees shutdown() within STOP_CHECK_S
+                    sleep(stop_check)
+                    if not self._running:
+                        return
+                    t = now()
+                    continue
+                sleep(left)
+                if not self._running:
+                    return
+                if recheck:
+                    t = now()
+                    if t < deadline:
+                        continue
+            elif not self._running:
+                return
+            try:
+                value = read()
+            except Exception as exc:
+                t = now()
+                self._read_failed(exc, t)
+            else:
+                t = now()
+                seq += 1
+                cell.sample = new_sample(sample_type, (value, t, seq))  # Latest.publish, inline
+                subscribers = cell._subscribers
+                if subscribers:
+                    for callback in subscribers:
+                        callback(value, t)
+            k += 1
+            deadline = t0 + k / rate  # Schedule's deadline of tick k
+            if t - deadline > behind:
+                sched.k = k - 1  # the tick that just ended
+                sched.advance(t)
+                self.skipped = sched.skipped
+                k, deadline = sched.k, sched.deadline
 
     # ---------------------------------------------------------------- virtual clock: timers + executor
     async def _poll_on_loop(self, loop: asyncio.AbstractEventLoop, clock: Clock) -> None:
@@ -168,7 +221,6 @@ class Poller(Generic[T]):
                     self._read_failed(exc, now())
                 else:
                     self.latest.publish(value, now())
-                    self.reads += 1
                 if sched.advance(now()):
                     self.skipped = sched.skipped
         finally:

@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from .clock import get_clock
+from .clock import DeadlineWaiter, get_clock
 from .errors import AsyncdonkeyError
 from .loop import PartError, Vehicle
 from .options import option, positive_float
@@ -300,6 +300,7 @@ class TubPlayer:
         self._t0: float | None = None  # clock time of the first record played
         self._ts0: float = 0.0
         self._last_at = 0.0
+        self._waiter: DeadlineWaiter | None = None  # one OS timer for the waits of every tick
 
     def _skip(self, reason: str, rec: Record) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -338,6 +339,7 @@ class TubPlayer:
     async def run(self) -> tuple[Any, ...]:
         nxt = self._next()
         if nxt is None:
+            self.shutdown()
             self._on_end()
             return (None, None, None, None, None, None, False)
         rec, image, ua, ut, ts = nxt
@@ -345,10 +347,19 @@ class TubPlayer:
         if self._t0 is None:
             self._t0, self._ts0 = clock.now(), float(ts)
         due = self._t0 + (float(ts) - self._ts0) / 1000.0 / self._speed
-        await clock.sleep_until(due)
+        waiter = self._waiter
+        if waiter is None:
+            waiter = self._waiter = DeadlineWaiter()
+        await waiter.wait_until(due)
         now = clock.now()
         self.late_max_s = max(self.late_max_s, now - due)
         return (image, ua, ut, rec.index, ts, now - self._t0, True)
+
+    def shutdown(self) -> None:
+        """Release the OS timer of the waits (at the end of the records, and when the drive stops)."""
+        waiter, self._waiter = self._waiter, None
+        if waiter is not None:
+            waiter.close()
 
 
 class TimedPilot:

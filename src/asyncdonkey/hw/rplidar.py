@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from ..clock import get_clock
+from ..clock import DeadlineWaiter, get_clock
 from ..errors import AsyncdonkeyError
 from ..latest import Latest
 from ..ratelimit import LogThrottle
@@ -564,10 +564,10 @@ class RPLidarDriver:
     async def start_scan(self) -> None:
         await self._ask(CMD_SCAN, TYPE_SCAN)
 
-    async def _session(self) -> None:
+    async def _session(self, waiter: DeadlineWaiter) -> None:
         clock = get_clock()
         self.stop()
-        await clock.sleep(0.002)  # the A1 needs ≥ 1 ms after STOP before the next request
+        await waiter.wait_until(clock.now() + 0.002)  # the A1 needs ≥ 1 ms after STOP before the next request
         self.protocol.stop()
         await self.get_info()
         health = await self.get_health()
@@ -589,6 +589,7 @@ class RPLidarDriver:
         self._clock_now = clock.now
         self._conn_changed = asyncio.Event()
         supervisor = loop.create_task(self.port.run(), name=f"serial:{self.port.name}")
+        waiter = DeadlineWaiter(loop)  # one OS timer for every pause of this run
         try:
             while not self._closing and not supervisor.done():
                 try:
@@ -598,15 +599,16 @@ class RPLidarDriver:
                 epoch = self.port.connects
                 self._conn_changed.clear()
                 try:
-                    await self._session()
+                    await self._session(waiter)
                 except (RPLidarError, ConnectionError) as exc:
                     self.session_failures += 1
                     if self._log.allow("session", clock.now()):
                         logger.warning("RPLidar %r: could not start scanning: %s", self.port.name, exc)
-                    await clock.sleep(self.response_timeout_s)
+                    await waiter.wait_until(clock.now() + self.response_timeout_s)
                     continue
                 await self._watch(epoch)
         finally:
+            waiter.close()
             if not supervisor.done():
                 await self.port.close()
                 await asyncio.wait({supervisor}, timeout=1.0)

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, Protocol
 import serial
 from serial_asyncio import connection_for_serial  # the one import of the asyncio serial layer (see docstring)
 
-from ..clock import Clock, get_clock
+from ..clock import Clock, DeadlineWaiter, get_clock
 from ..errors import AsyncdonkeyError
 from ..ratelimit import LogThrottle
 
@@ -281,11 +281,12 @@ class SerialPort:
         self._connected_event = self._connected_event or asyncio.Event()
         self._stopped = asyncio.Event()
         delay = self.backoff_initial_s
+        waiter = DeadlineWaiter(loop)  # one OS timer for every back-off pause of this run
         try:
             while not self._closing:
                 ser = await self._open(loop)
                 if ser is None:
-                    await self._pause(clock, delay)
+                    await self._pause(clock, waiter, delay)
                     delay = min(delay * 2.0, self.backoff_max_s)
                     continue
                 lost: asyncio.Future[BaseException | None] = loop.create_future()
@@ -310,9 +311,10 @@ class SerialPort:
                     self.disconnects,
                 )
                 delay = self.backoff_initial_s
-                await self._pause(clock, delay)
+                await self._pause(clock, waiter, delay)
                 delay = min(delay * 2.0, self.backoff_max_s)
         finally:
+            waiter.close()
             t = self._transport
             if t is not None:
                 if not t.is_closing():
@@ -527,12 +529,12 @@ class SerialPort:
                 logger.warning("serial port %r: cannot open (%s); retrying%s", self.name, exc, more)
             return None
 
-    async def _pause(self, clock: Clock, seconds: float) -> None:
+    async def _pause(self, clock: Clock, waiter: DeadlineWaiter, seconds: float) -> None:
         if self._closing:
             return
         wake = self._wake = asyncio.get_running_loop().create_future()
         try:
-            await clock.sleep_until(clock.now() + seconds, wake)
+            await waiter.wait_until(clock.now() + seconds, wake)
         finally:
             self._wake = None
 

@@ -285,8 +285,9 @@ class _PWMPart:
             self._runtime.record_latency(clock.now(), origin)
         return True
 
-    async def _before_driving(self, clock: Clock) -> None:
-        """Hook run once when the writer starts (the throttle arms the ESC here)."""
+    async def _before_driving(self, clock: Clock, waiter: DeadlineWaiter) -> None:
+        """Hook run once when the writer starts (the throttle arms the ESC here), waiting with the writer's
+        ``waiter``."""
 
     async def update(self) -> None:
         """The writer task: push the newest target pulse to the output whenever it changes."""
@@ -296,7 +297,7 @@ class _PWMPart:
         self._running = True
         waiter = DeadlineWaiter(loop)  # one OS timer for every wait of this writer
         try:
-            await self._before_driving(clock)
+            await self._before_driving(clock, waiter)
             while self._running:
                 wake = self._wake = loop.create_future()
                 pulse, recheck_at = self._desired(clock.now())
@@ -633,12 +634,12 @@ class PWMThrottle(_PWMPart):
             return self.neutral_pulse, math.inf
         return self.pulse, stale_at
 
-    async def _before_driving(self, clock: Clock) -> None:
+    async def _before_driving(self, clock: Clock, waiter: DeadlineWaiter) -> None:
         neutral = self.neutral_pulse
         while self._running and not await self._write(neutral, clock):
-            await clock.sleep(self.retry_s)
+            await waiter.wait_until(clock.now() + self.retry_s)
         if self.arm_s:
-            await clock.sleep(self.arm_s)
+            await waiter.wait_until(clock.now() + self.arm_s)
         self.armed = True
         self.pulse = self.command_pulse  # _desired() applies the failsafe to it
         logger.info("%s: ESC armed (stopped pulse %d held %.1f s)", self.name, neutral, self.arm_s)

@@ -42,6 +42,7 @@ from typing import Any, Final, TextIO
 from aiohttp import WSMsgType, web
 
 from ...clock import Clock, get_clock
+from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from ..control import DRIVE_MODES, USER, normalise_mode
 from .auth import TOKEN_PARAM, Access, WebConfigError, is_loopback, new_token, origin_allowed
@@ -510,23 +511,24 @@ class WebController:
         clock = self._clock
         assert clock is not None
         last_t, last_n = clock.now(), self.ticks
-        while True:
-            await clock.sleep(self.health_every_s)
-            now, n = clock.now(), self.ticks
-            health: dict[str, Any] = {"hz": round((n - last_n) / (now - last_t), 2) if now > last_t else 0.0}
-            last_t, last_n = now, n
-            if self._status is not None:
-                try:
-                    health.update(self._status())
-                except Exception as exc:  # a status callable must not take the controller down
-                    held = self._log.ready("status", now, "failures")
-                    if held is not None:
-                        logger.error("web: the status callable failed%s: %r", held, exc)
-            health["viewers"] = self.hub.viewers
-            self.last_health = health
-            self._push_roles()
-            if self._clients:
-                self._broadcast_now({"health": health})
+        with Periodic(self.health_every_s) as every:
+            while True:
+                await every.next()
+                now, n = clock.now(), self.ticks
+                health: dict[str, Any] = {"hz": round((n - last_n) / (now - last_t), 2) if now > last_t else 0.0}
+                last_t, last_n = now, n
+                if self._status is not None:
+                    try:
+                        health.update(self._status())
+                    except Exception as exc:  # a status callable must not take the controller down
+                        held = self._log.ready("status", now, "failures")
+                        if held is not None:
+                            logger.error("web: the status callable failed%s: %r", held, exc)
+                health["viewers"] = self.hub.viewers
+                self.last_health = health
+                self._push_roles()
+                if self._clients:
+                    self._broadcast_now({"health": health})
 
     # ================================================================================== start-up message
     def _urls(self) -> list[str]:

@@ -20,7 +20,6 @@ status has not come for ``3 * every`` shows as gone.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
 import shutil
@@ -33,6 +32,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from ...clock import get_clock
+from ...periodic import Periodic
 from .link import ZenohLink, zenoh_config
 
 __all__ = ["STATUS_KEY", "FleetStatus", "FleetWatcher", "render_fleet", "top_main"]
@@ -109,15 +109,13 @@ class FleetStatus:
     async def update(self) -> None:
         clock = get_clock()
         t_last, n_last = clock.now(), self.ticks
-        next_t = t_last
-        while not self.link.closed:
-            next_t += self.every_s
-            await clock.sleep_until(next_t)
-            now, n = clock.now(), self.ticks
-            hz = (n - n_last) / (now - t_last) if now > t_last else 0.0
-            t_last, n_last = now, n
-            self.publish(hz)
-            await asyncio.sleep(0)
+        with Periodic(self.every_s) as every:
+            while not self.link.closed:
+                await every.next()
+                now, n = clock.now(), self.ticks
+                hz = (n - n_last) / (now - t_last) if now > t_last else 0.0
+                t_last, n_last = now, n
+                self.publish(hz)
 
     def shutdown(self) -> None:
         try:

@@ -34,7 +34,6 @@ with its key. This is a second line behind the access-control rules of a secure 
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import random
@@ -47,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from ...clock import get_clock
+from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from .codec import CodecError, decode, encode, pack_attachment, unpack_attachment
 from .link import INTERNAL, ZenohLink
@@ -365,12 +365,10 @@ class ZenohSubscriber:
         self.link.now = clock.now
         if self.ping_every_s <= 0:
             return
-        next_t = clock.now()
-        while not self.link.closed:
-            self.link.ping()
-            next_t += self.ping_every_s
-            await clock.sleep_until(next_t)
-            await asyncio.sleep(0)
+        with Periodic(self.ping_every_s) as every:
+            while not self.link.closed:
+                self.link.ping()
+                await every.next()
 
     def counters(self) -> dict[str, int]:
         with self._lock:

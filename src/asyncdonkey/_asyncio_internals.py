@@ -1,9 +1,10 @@
 """Every CPython implementation detail the virtual clock relies on, in one place, checked at import.
 
 :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` needs to see things asyncio and the threading modules keep
-private: the loop's timer heap (``_scheduled``), its ready queue (``_ready``), the fields of a timer handle, how
-``asyncio.wrap_future`` creates its future, how a ``ThreadPoolExecutor`` worker runs a job, and which frames a
-thread is in while it blocks on a lock. They have been stable from Python 3.8 to 3.13, but none is promised.
+private: the loop's timer heap (``_scheduled``), its ready queue (``_ready``), what one loop iteration does
+(``_run_once``), the fields of a timer handle, how ``asyncio.wrap_future`` creates its future, how a
+``ThreadPoolExecutor`` worker runs a job, which frames a thread is in while it blocks on a lock, and the
+``threading`` module's tables of threads. They have been stable from Python 3.8 to 3.13, but none is promised.
 Everything that touches them lives here, and :func:`problems` checks each one against the running Python:
 the virtual loop refuses to start (and ``tests/core/test_asyncio_internals.py`` fails) with a message naming
 what changed, rather than mis-timing silently.
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures.thread as _cf_thread
+import contextvars
 import heapq
 import inspect
 import threading
@@ -22,6 +24,8 @@ from types import CodeType, FrameType
 from typing import Any
 
 __all__ = [
+    "WRAP_FUTURE",
+    "LoopIteration",
     "SeqTimerHandle",
     "idle_pool_worker",
     "is_wrap_future",
@@ -29,6 +33,8 @@ __all__ = [
     "problems",
     "push_timer",
     "ready_tasks",
+    "schedule_timer",
+    "thread_count",
     "waiting",
 ]
 
@@ -65,6 +71,38 @@ class SeqTimerHandle(events.TimerHandle):
         return a < b or (a == b and self._seq <= other._seq)
 
 
+_new_timer = SeqTimerHandle.__new__
+_copy_context = contextvars.copy_context
+_heappush = heapq.heappush
+
+
+def schedule_timer(
+    loop: Any, seq: int, when: float, callback: Callable[..., Any], args: tuple[Any, ...], context: Any
+) -> SeqTimerHandle:
+    """``call_at`` of a loop not in debug mode: a new timer, into the heap, marked as scheduled.
+
+    It sets the handle's fields itself rather than through ``TimerHandle.__init__`` (which calls
+    ``Handle.__init__``, which asks the loop for its debug flag): a third of the cost of a timer, paid on every
+    tick. :func:`problems` checks that a handle made here has exactly the fields asyncio's would. In debug
+    mode the loop builds its timers the asyncio way, which records where each was created.
+    """
+    if loop._closed:
+        loop._check_closed()  # raises, with asyncio's message
+    timer = _new_timer(SeqTimerHandle)
+    timer._callback = callback
+    timer._args = args
+    timer._cancelled = False
+    timer._loop = loop
+    timer._source_traceback = None
+    timer._repr = None
+    timer._context = _copy_context() if context is None else context
+    timer._when = when
+    timer._seq = seq
+    _heappush(loop._scheduled, timer)
+    timer._scheduled = True
+    return timer
+
+
 def push_timer(loop: Any, timer: SeqTimerHandle) -> None:
     """What ``BaseEventLoop.call_at`` does with a new timer: into the heap, marked as scheduled."""
     if timer._source_traceback:
@@ -98,6 +136,82 @@ def ready_tasks(loop: Any) -> list[asyncio.Task[Any]]:
     return tasks
 
 
+# asyncio's rule for rebuilding the heap (its values since Python 3.5, should the names ever go: see problems())
+_MIN_SCHEDULED: int = getattr(base_events, "_MIN_SCHEDULED_TIMER_HANDLES", 100)
+_MIN_CANCELLED_FRACTION: float = getattr(base_events, "_MIN_CANCELLED_TIMER_HANDLES_FRACTION", 0.5)
+_heappop = heapq.heappop
+
+
+class LoopIteration:
+    """``BaseEventLoop._run_once`` for a loop that decides itself when to poll for I/O and when time moves.
+
+    asyncio's iteration computes a select timeout from the clock, calls ``selector.select(timeout)`` and reads
+    the clock again; a virtual loop only needs to know which case it is in. Here the case picks the hook:
+    ``_poll_busy()`` when callbacks are ready (or the loop is stopping, or the earliest timer is already due:
+    asyncio's timeout 0), ``_poll_idle()`` when everything waits (asyncio's timeout > 0, or ``None`` with no
+    timer). Each returns the selector events to process (an empty sequence for none) and may move the clock.
+    The rest is asyncio's iteration: cancelled timers are dropped by the same rule, due timers join the ready
+    queue in deadline order, and the callbacks ready at the start of this step run, in order. The clock is the
+    loop's own ``_virtual_time`` attribute (read directly: this runs every iteration).
+
+    In debug mode the loop runs asyncio's own iteration (it times callbacks and warns about slow ones); the
+    loop's selector then routes ``select(timeout)`` to the same two hooks.
+    """
+
+    __slots__ = ()
+
+    def _run_once(self: Any) -> None:
+        if self._debug:
+            return super()._run_once()  # type: ignore[misc]
+        scheduled = self._scheduled
+        n = len(scheduled)
+        if n > _MIN_SCHEDULED and self._timer_cancelled_count / n > _MIN_CANCELLED_FRACTION:
+            _drop_cancelled(self)
+            scheduled = self._scheduled
+        else:
+            while scheduled and scheduled[0]._cancelled:
+                self._timer_cancelled_count -= 1
+                _heappop(scheduled)._scheduled = False
+        ready = self._ready
+        if ready or self._stopping or (scheduled and scheduled[0]._when <= self._virtual_time):
+            event_list = self._poll_busy()
+        else:
+            event_list = self._poll_idle()
+        if event_list:
+            self._process_events(event_list)
+        if scheduled:
+            end = self._virtual_time + self._clock_resolution
+            while scheduled and scheduled[0]._when < end:
+                handle = _heappop(scheduled)
+                handle._scheduled = False
+                ready.append(handle)
+        for _ in range(len(ready)):
+            handle = ready.popleft()
+            if not handle._cancelled:
+                handle._run()
+        handle = None  # no cycle through a handle whose callback raised
+
+
+def _drop_cancelled(loop: Any) -> None:
+    """Rebuild the timer heap without its cancelled timers (asyncio does so when they are over half of it)."""
+    live = []
+    for handle in loop._scheduled:
+        if handle._cancelled:
+            handle._scheduled = False
+        else:
+            live.append(handle)
+    heapq.heapify(live)
+    loop._scheduled = live
+    loop._timer_cancelled_count = 0
+
+
+def thread_count() -> int:
+    """``threading.active_count()`` without taking the threads' lock (a fifth of the cost; it runs every loop
+    iteration). Reading the two tables unlocked can count a thread moving from "starting" to "running" twice,
+    never zero times: at worst one needless census."""
+    return len(threading._active) + len(threading._limbo)  # type: ignore[attr-defined]
+
+
 # -- executor futures and what threads are doing -------------------------------------------------------------
 #
 # Only code objects and line numbers are read here, never a frame's locals: on Python <= 3.12 reading
@@ -125,6 +239,10 @@ def _untimed_acquire_line() -> int | None:
 
 
 _UNTIMED_ACQUIRE_LINE = _untimed_acquire_line()
+
+
+#: the code object :func:`is_wrap_future` compares with, for a caller that inlines that test
+WRAP_FUTURE = _WRAP_FUTURE
 
 
 def is_wrap_future(caller: FrameType) -> bool:
@@ -175,8 +293,23 @@ def problems() -> list[str]:
         for name in ("_when", "_cancelled", "_scheduled", "_callback", "_source_traceback"):
             if not hasattr(handle, name):
                 found.append(f"asyncio.TimerHandle has no {name}")
+        for name in ("_stopping", "_closed", "_debug", "_process_events"):
+            if not hasattr(loop, name):
+                found.append(f"asyncio selector event loops have no {name}")
+        found += _timer_problems(loop)
     finally:
         loop.close()
+    for name in ("_MIN_SCHEDULED_TIMER_HANDLES", "_MIN_CANCELLED_TIMER_HANDLES_FRACTION"):
+        if not hasattr(base_events, name):
+            found.append(f"asyncio.base_events has no {name} (when _run_once rebuilds its timer heap)")
+    if "_run_once" not in base_events.BaseEventLoop.run_forever.__code__.co_names:
+        found.append("BaseEventLoop.run_forever no longer calls _run_once")
+    if not hasattr(events.Handle, "_run"):
+        found.append("asyncio.Handle has no _run")
+    if not all(isinstance(getattr(threading, name, None), dict) for name in ("_active", "_limbo")):
+        found.append("threading no longer keeps its threads in the dicts _active and _limbo")
+    elif thread_count() != threading.active_count():
+        found.append("threading.active_count() no longer counts threading._active and threading._limbo")
     run_once = getattr(base_events.BaseEventLoop, "_run_once", None)
     names = run_once.__code__.co_names if run_once is not None else ()
     for name in ("_scheduled", "_ready", "_selector", "select", "_timer_cancelled_count"):
@@ -189,3 +322,19 @@ def problems() -> list[str]:
     if _UNTIMED_ACQUIRE_LINE is None:
         found.append("threading.Condition.wait no longer blocks in 'waiter.acquire()' under 'if timeout is None:'")
     return found
+
+
+def _timer_problems(loop: Any) -> list[str]:
+    """Whether :func:`schedule_timer` sets exactly the fields ``TimerHandle.__init__`` sets, to the same values."""
+    context = contextvars.copy_context()
+    theirs = events.TimerHandle(1.0, print, (2,), loop, context)
+    try:
+        ours = schedule_timer(loop, 0, 1.0, print, (2,), context)
+    except (AttributeError, TypeError) as exc:
+        return [f"a timer cannot be built field by field: {exc}"]
+    loop._scheduled.remove(ours)
+    ours._scheduled = False
+    names = {n for cls in type(theirs).__mro__ for n in getattr(cls, "__slots__", ()) if n != "__weakref__"}
+    missing = object()
+    differ = sorted(n for n in names if getattr(ours, n, missing) != getattr(theirs, n, missing))
+    return [f"asyncio.TimerHandle fields are not what the virtual loop sets: {', '.join(differ)}"] if differ else []

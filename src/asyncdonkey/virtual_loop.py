@@ -134,11 +134,19 @@ class _Census:
 
 
 _QUIET = _Census()
+_NO_EVENTS: tuple[()] = ()  # what a poll that found nothing returns (no list made per iteration)
+
+# read on every tick: bound once
+_Future = futures.Future
+_getframe = sys._getframe
+_thread_count = _internals.thread_count
+_WRAP_FUTURE = _internals.WRAP_FUTURE
 
 
 class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
     """The platform selector, counting its registered file descriptors (one is the loop's wake-up pipe). The
-    loop replaces its ``select`` with the virtual-time policy, bound once (this runs every loop iteration)."""
+    loop's own iteration polls it only when its policy says so; in debug mode asyncio's iteration runs instead,
+    and the loop replaces this selector's ``select`` with the same policy."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -155,7 +163,7 @@ class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-ty
         return key
 
 
-class VirtualClockLoop(asyncio.SelectorEventLoop):
+class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
     """A selector event loop whose :meth:`time` is virtual and jumps to the next timer when all tasks wait.
 
     Use it as ``asyncio.Runner(loop_factory=VirtualClockLoop)`` or, in pytest, with ``@pytest.mark.asyncio``
@@ -228,7 +236,8 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._spin_since: float | None = None
         self._failure: VirtualClockError | None = None
         self._idle = 0
-        selector.select = functools.partial(self._select, super(_VirtualSelector, selector).select)
+        self._real_select = super(_VirtualSelector, selector).select
+        selector.select = self._select  # asyncio's own iteration (debug mode) selects through the policy
 
     # -- time ---------------------------------------------------------------------------------------------
     def time(self) -> float:
@@ -258,18 +267,20 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     def call_at(self, when: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
         if when is None:
             raise TypeError("when cannot be None")
+        if not self._debug:
+            return _internals.schedule_timer(self, next(self._timer_seq), when, callback, args, context)
         self._check_closed()
-        if self._debug:
-            self._check_thread()
-            self._check_callback(callback, "call_at")
+        self._check_thread()
+        self._check_callback(callback, "call_at")
         timer = _internals.SeqTimerHandle(next(self._timer_seq), when, callback, args, self, context)
         _internals.push_timer(self, timer)
         return timer
 
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
-        fut: asyncio.Future[Any] = futures.Future(loop=self)
-        if _internals.is_wrap_future(sys._getframe(1)):  # asyncio.wrap_future: executor work is on its way
+        fut: asyncio.Future[Any] = _Future(loop=self)
+        # asyncio.wrap_future: executor work is on its way (_internals.is_wrap_future, inlined: runs every tick)
+        if _getframe(1).f_code is _WRAP_FUTURE:
             self._jobs[fut] = _Job("a concurrent.futures job")
             self._quiet_threads = -1
             fut.add_done_callback(self._job_done)
@@ -338,7 +349,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     # -- what holds time, what may answer ------------------------------------------------------------------
     def _census(self, force: bool = False) -> _Census:
         """Classify the threads started since this loop was created (cached while none needs watching)."""
-        count = threading.active_count()
+        count = _thread_count()
         if not force and count == self._quiet_threads:
             self._rescan += 1
             if self._rescan < _RESCAN_EVERY:
@@ -401,58 +412,74 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         return held
 
     # -- the jump ------------------------------------------------------------------------------------------
-    def _select(self, real_select: Callable[[float | None], list[Any]], timeout: float | None) -> list[Any]:
-        if timeout == 0:  # callbacks are ready: a busy iteration, time does not move
-            n = self._busy = self._busy + 1
-            # Without threads at work, real I/O can wait a few iterations. With them, poll every time: the
-            # system call releases the GIL, which a thread needs (a loop spinning on sleep(0) while an executor
-            # opens a port would otherwise hand it over only every switch interval, 5 ms).
-            if n % _POLL_EVERY and not self._jobs and threading.active_count() == self._quiet_threads:
-                return []
-            events_ = real_select(0)
-            if events_:
-                self._busy = 0
-                self._spin_since = None
-            elif not n % _LIVELOCK_CHECK_EVERY:
-                self._check_livelock(n)
-            return events_
+    def _select(self, timeout: float | None) -> Any:
+        """The selector's ``select`` in debug mode, where asyncio's own iteration runs: the same policy."""
+        return self._poll_busy() if timeout == 0 else self._poll_idle()
+
+    def _poll_busy(self) -> Any:
+        """Callbacks are ready (a busy iteration): time does not move; real I/O is polled now and then."""
+        n = self._busy = self._busy + 1
+        # Without threads at work, real I/O can wait a few iterations. With them, poll every time: the system
+        # call releases the GIL, which a thread needs (a loop spinning on sleep(0) while an executor opens a
+        # port would otherwise hand it over only every switch interval, 5 ms).
+        if n % _POLL_EVERY and not self._jobs and _thread_count() == self._quiet_threads:
+            return _NO_EVENTS
+        events_ = self._real_select(0)
+        if events_:
+            self._busy = 0
+            self._spin_since = None
+        elif not n % _LIVELOCK_CHECK_EVERY:
+            self._check_livelock(n)
+        return events_
+
+    def _poll_idle(self) -> Any:
+        """Every task waits: poll outside I/O, wait while real work holds time, then jump to the next timer.
+
+        This runs once per jump, so the common case (no thread, descriptor, job or hold to watch) reads a few
+        counters and nothing else; the census of threads is cached while it finds none to watch.
+        """
         self._busy = 0
         self._spin_since = None
+        idle = self._idle = self._idle + 1
         # Poll real I/O before moving time. With no outside descriptor only the wake-up pipe could be ready, and
         # what matters on it (a thread's callback) is already in the ready queue: signals can wait a few jumps.
-        self._idle += 1
-        if self._selector.n_fds > self._own_fds or not self._idle % 8:
-            events_ = real_select(0)
+        outside = self._selector.n_fds > self._own_fds
+        if outside or not idle % 8:
+            events_ = self._real_select(0)
             if events_:
                 return events_
-        census = self._census()
+        if self._rescan < _RESCAN_EVERY - 1 and _thread_count() == self._quiet_threads:
+            self._rescan += 1  # the cached census still holds: nothing to watch (_census, inlined)
+            census = _QUIET
+        else:
+            census = self._census()
         if census is not _QUIET or self._jobs or self._procs or self._holds or self._external_pending:
             held = self._holders(census)
             if held:
-                return self._wait_while_held(real_select, held)
-        live = bool(census.live) or self._selector.n_fds > self._own_fds
+                return self._wait_while_held(held)
+            outside = outside or bool(census.live)
         when = _internals.next_live_timer(self)
         if when is None:
-            return self._nothing_scheduled(real_select, census)
-        if live and self.autojump_threshold > 0:
-            events_ = real_select(self.autojump_threshold)
+            return self._nothing_scheduled(census)
+        if outside and self.autojump_threshold > 0:
+            events_ = self._real_select(self.autojump_threshold)
             if events_:
                 return events_
         if _internals.has_ready(self):  # a thread's call_soon_threadsafe arrived meanwhile
-            return []
+            return _NO_EVENTS
         if when > self._virtual_time:
             if when > self._budget_end:
                 raise self._fail(VirtualClockBudgetExceeded(self._budget_message(when, "the next timer")))
             self._virtual_time = when
             self.jumps += 1
-        return []
+        return _NO_EVENTS
 
-    def _wait_while_held(self, real_select: Callable[[float | None], list[Any]], held: list[str]) -> list[Any]:
+    def _wait_while_held(self, held: list[str]) -> list[Any]:
         """Wait in real time while real work holds virtual time; stall after ``stall_timeout_s``."""
         started = time.monotonic()
         pause = 0.0005
         while True:
-            events_ = real_select(pause)  # executor results and threads' call_soon_threadsafe wake us at once
+            events_ = self._real_select(pause)  # executor results and threads' call_soon_threadsafe wake us at once
             if events_ or _internals.has_ready(self):
                 return events_
             held = self._holders(self._census(force=True))
@@ -462,11 +489,11 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
                 raise self._fail(VirtualClockStall(self._stall_message(held)))
             pause = min(pause * 2, 0.002)  # a thread or a hold may end without waking the loop: poll
 
-    def _nothing_scheduled(self, real_select: Callable[[float | None], list[Any]], census: _Census) -> list[Any]:
+    def _nothing_scheduled(self, census: _Census) -> list[Any]:
         """No timer and nothing holding time: only outside I/O can still wake the loop."""
         deadline = time.monotonic() + self.deadlock_grace_s
         while True:
-            events_ = real_select(min(0.02, max(0.0, deadline - time.monotonic())))
+            events_ = self._real_select(min(0.02, max(0.0, deadline - time.monotonic())))
             if events_ or _internals.has_ready(self):
                 return events_
             census = self._census(force=True)

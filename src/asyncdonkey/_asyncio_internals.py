@@ -32,6 +32,7 @@ __all__ = [
     "next_live_timer",
     "problems",
     "push_timer",
+    "queue_callback",
     "ready_tasks",
     "schedule_timer",
     "thread_count",
@@ -72,6 +73,8 @@ class SeqTimerHandle(events.TimerHandle):
 
 
 _new_timer = SeqTimerHandle.__new__
+_new_handle = events.Handle.__new__
+_Handle = events.Handle
 _copy_context = contextvars.copy_context
 _heappush = heapq.heappush
 
@@ -101,6 +104,23 @@ def schedule_timer(
     _heappush(loop._scheduled, timer)
     timer._scheduled = True
     return timer
+
+
+def queue_callback(loop: Any, callback: Callable[..., Any], args: tuple[Any, ...], context: Any) -> events.Handle:
+    """``call_soon`` of a loop not in debug mode: a handle, field by field as in :func:`schedule_timer`, at the
+    end of the ready queue. Every task step and every future's callback is queued through here."""
+    if loop._closed:
+        loop._check_closed()  # raises, with asyncio's message
+    handle = _new_handle(_Handle)
+    handle._callback = callback
+    handle._args = args
+    handle._cancelled = False
+    handle._loop = loop
+    handle._source_traceback = None
+    handle._repr = None
+    handle._context = _copy_context() if context is None else context
+    loop._ready.append(handle)
+    return handle
 
 
 def push_timer(loop: Any, timer: SeqTimerHandle) -> None:
@@ -296,7 +316,7 @@ def problems() -> list[str]:
         for name in ("_stopping", "_closed", "_debug", "_process_events"):
             if not hasattr(loop, name):
                 found.append(f"asyncio selector event loops have no {name}")
-        found += _timer_problems(loop)
+        found += _handle_problems(loop)
     finally:
         loop.close()
     for name in ("_MIN_SCHEDULED_TIMER_HANDLES", "_MIN_CANCELLED_TIMER_HANDLES_FRACTION"):
@@ -324,17 +344,34 @@ def problems() -> list[str]:
     return found
 
 
-def _timer_problems(loop: Any) -> list[str]:
-    """Whether :func:`schedule_timer` sets exactly the fields ``TimerHandle.__init__`` sets, to the same values."""
+def _handle_problems(loop: Any) -> list[str]:
+    """Whether :func:`schedule_timer` and :func:`queue_callback` set exactly the fields asyncio's constructors
+    set, to the same values."""
+    found = []
     context = contextvars.copy_context()
-    theirs = events.TimerHandle(1.0, print, (2,), loop, context)
-    try:
-        ours = schedule_timer(loop, 0, 1.0, print, (2,), context)
-    except (AttributeError, TypeError) as exc:
-        return [f"a timer cannot be built field by field: {exc}"]
-    loop._scheduled.remove(ours)
-    ours._scheduled = False
-    names = {n for cls in type(theirs).__mro__ for n in getattr(cls, "__slots__", ()) if n != "__weakref__"}
-    missing = object()
-    differ = sorted(n for n in names if getattr(ours, n, missing) != getattr(theirs, n, missing))
-    return [f"asyncio.TimerHandle fields are not what the virtual loop sets: {', '.join(differ)}"] if differ else []
+    for kind, make, theirs in (
+        (
+            "TimerHandle",
+            lambda: schedule_timer(loop, 0, 1.0, print, (2,), context),
+            events.TimerHandle(1.0, print, (2,), loop, context),
+        ),
+        ("Handle", lambda: queue_callback(loop, print, (2,), context), events.Handle(print, (2,), loop, context)),
+    ):
+        try:
+            ours = make()
+        except (AttributeError, TypeError) as exc:
+            found.append(f"an asyncio.{kind} cannot be built field by field: {exc}")
+            continue
+        if kind == "TimerHandle":
+            loop._scheduled.remove(ours)
+            ours._scheduled = False
+        else:
+            loop._ready.remove(ours)
+        names = {n for cls in type(theirs).__mro__ for n in getattr(cls, "__slots__", ()) if n != "__weakref__"}
+        missing = object()
+        differ = sorted(n for n in names if getattr(ours, n, missing) != getattr(theirs, n, missing))
+        if differ:
+            found.append(
+                f"asyncio.{kind} has fields the virtual loop does not set as asyncio does: {', '.join(differ)}"
+            )
+    return found

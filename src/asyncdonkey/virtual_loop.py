@@ -276,6 +276,11 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         _internals.push_timer(self, timer)
         return timer
 
+    def call_soon(self, callback: Callable[..., Any], *args: Any, context: Any = None) -> asyncio.Handle:
+        if self._debug:
+            return super().call_soon(callback, *args, context=context)
+        return _internals.queue_callback(self, callback, args, context)
+
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = _Future(loop=self)

@@ -193,10 +193,13 @@ class LoopIteration:
                 self._timer_cancelled_count -= 1
                 _heappop(scheduled)._scheduled = False
         ready = self._ready
-        if ready or self._stopping or (scheduled and scheduled[0]._when <= self._virtual_time):
+        if ready or self._stopping:
             event_list = self._poll_busy()
+        elif not scheduled:
+            event_list = self._poll_idle(None)
         else:
-            event_list = self._poll_idle()
+            when = scheduled[0]._when
+            event_list = self._poll_busy() if when <= self._virtual_time else self._poll_idle(when)
         if event_list:
             self._process_events(event_list)
         if scheduled:

@@ -102,7 +102,7 @@ class VirtualClockLivelock(VirtualClockError):
     """Tasks kept the loop busy without letting virtual time move and without any outside work."""
 
 
-_POLL_EVERY = 64  # a busy loop polls real I/O once in this many iterations
+_POLL_EVERY = 64  # without outside descriptors or working threads, real I/O is polled once in this many iterations
 _LIVELOCK_CHECK_EVERY = 4096  # iterations between livelock checks (a power of two)
 _RESCAN_EVERY = 64  # idle iterations between full thread censuses while the cached one says "quiet"
 
@@ -419,7 +419,7 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
     # -- the jump ------------------------------------------------------------------------------------------
     def _select(self, timeout: float | None) -> Any:
         """The selector's ``select`` in debug mode, where asyncio's own iteration runs: the same policy."""
-        return self._poll_busy() if timeout == 0 else self._poll_idle()
+        return self._poll_busy() if timeout == 0 else self._poll_idle(_internals.next_live_timer(self))
 
     def _poll_busy(self) -> Any:
         """Callbacks are ready (a busy iteration): time does not move; real I/O is polled now and then."""
@@ -437,8 +437,9 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
             self._check_livelock(n)
         return events_
 
-    def _poll_idle(self) -> Any:
-        """Every task waits: poll outside I/O, wait while real work holds time, then jump to the next timer.
+    def _poll_idle(self, when: float | None) -> Any:
+        """Every task waits (``when``: the earliest live timer's deadline, ``None`` without timers): poll outside
+        I/O, wait while real work holds time, then jump to ``when``.
 
         This runs once per jump, so the common case (no thread, descriptor, job or hold to watch) reads a few
         counters and nothing else; the census of threads is cached while it finds none to watch.
@@ -447,14 +448,15 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         self._spin_since = None
         idle = self._idle = self._idle + 1
         # Poll real I/O before moving time. With no outside descriptor only the wake-up pipe could be ready, and
-        # what matters on it (a thread's callback) is already in the ready queue: signals can wait a few jumps.
+        # what matters on it (a thread's callback) is already in the ready queue: a signal handler added with
+        # loop.add_signal_handler can wait a few jumps, as it waits a few busy iterations (_POLL_EVERY).
         outside = self._selector.n_fds > self._own_fds
-        if outside or not idle % 8:
+        if outside or not idle % _POLL_EVERY:
             events_ = self._real_select(0)
             if events_:
                 return events_
         if self._rescan < _RESCAN_EVERY - 1 and _thread_count() == self._quiet_threads:
-            self._rescan += 1  # the cached census still holds: nothing to watch (_census, inlined)
+            self._rescan += 1  # the cached census still holds: no thread to watch (_census, inlined)
             census = _QUIET
         else:
             census = self._census()
@@ -463,14 +465,16 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
             if held:
                 return self._wait_while_held(held)
             outside = outside or bool(census.live)
-        when = _internals.next_live_timer(self)
+            when = _internals.next_live_timer(self)  # the holds' busy() ran: read the heap again
         if when is None:
             return self._nothing_scheduled(census)
         if outside and self.autojump_threshold > 0:
             events_ = self._real_select(self.autojump_threshold)
             if events_:
                 return events_
-        if _internals.has_ready(self):  # a thread's call_soon_threadsafe arrived meanwhile
+        # a thread's call_soon_threadsafe may have arrived meanwhile (only threads and descriptors being watched
+        # take real time here: with none, the ready queue was empty a moment ago, in _run_once)
+        if (census is not _QUIET or outside) and _internals.has_ready(self):
             return _NO_EVENTS
         if when > self._virtual_time:
             if when > self._budget_end:

@@ -281,6 +281,11 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
             return super().call_soon(callback, *args, context=context)
         return _internals.queue_callback(self, callback, args, context)
 
+    def call_later(self, delay: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
+        if delay is None or self._debug:
+            return super().call_later(delay, callback, *args, context=context)
+        return self.call_at(self._virtual_time + delay, callback, *args, context=context)
+
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = _Future(loop=self)

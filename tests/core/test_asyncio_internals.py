@@ -71,3 +71,12 @@ def test_handles_built_field_by_field_match_asyncio_and_a_difference_is_named(mo
 def test_a_thread_count_that_disagrees_with_threading_is_named(monkeypatch):
     monkeypatch.setattr(internals, "thread_count", lambda: threading.active_count() + 1)
     assert any("threading.active_count() no longer counts" in p for p in internals.problems())
+
+
+def test_a_timer_cancel_that_differs_from_asyncio_is_named(monkeypatch):
+    def forgets_the_count(handle):  # as if asyncio's loop had started to track cancelled timers differently
+        handle._cancelled = True
+        handle._callback = handle._args = None
+
+    monkeypatch.setattr(internals.SeqTimerHandle, "cancel", forgets_the_count)
+    assert any("TimerHandle.cancel does what" in p for p in internals.problems())

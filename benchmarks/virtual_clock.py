@@ -20,6 +20,7 @@ timer).
     python benchmarks/virtual_clock.py           # 7 rounds
     python benchmarks/virtual_clock.py --quick   # 3 rounds
     python benchmarks/virtual_clock.py --json    # figures as JSON for benchmarks/run_all.py
+    python benchmarks/virtual_clock.py --profile call_at_chain_s   # where one workload's time goes (cProfile)
 """
 
 from __future__ import annotations
@@ -203,11 +204,30 @@ def table(r: dict) -> str:
     return "\n".join(lines)
 
 
+def profile(name: str, top: int = 25) -> None:
+    """The workload's functions by their own time. cProfile adds a fixed cost to every call, so small
+    functions look dearer than they are: compare variants with the figures, not with this."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    profiler.runcall(WORKLOADS[name])
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 rounds instead of 7")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument(
+        "--profile",
+        choices=sorted(WORKLOADS),
+        help="no figures: run this workload once under cProfile and print where its time goes",
+    )
     args = parser.parse_args(argv)
+    if args.profile:
+        profile(args.profile)
+        return 0
     results = measure(3 if args.quick else 7)
     print(json.dumps(results, indent=2) if args.json else table(results))
     return 0

@@ -470,21 +470,24 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
             census = _QUIET
         else:
             census = self._census()
+        # Real time passes here only while something is watched (threads, descriptors, jobs, holds); then a
+        # thread's call_soon_threadsafe may arrive meanwhile, and must run before time moves. With nothing
+        # watched, the ready queue was empty a moment ago (in _run_once) and is not looked at again.
+        watched = outside
         if census is not _QUIET or self._jobs or self._procs or self._holds or self._external_pending:
             held = self._holders(census)
             if held:
                 return self._wait_while_held(held)
             outside = outside or bool(census.live)
             when = _internals.next_live_timer(self)  # the holds' busy() ran: read the heap again
+            watched = True
         if when is None:
             return self._nothing_scheduled(census)
         if outside and self.autojump_threshold > 0:
             events_ = self._real_select(self.autojump_threshold)
             if events_:
                 return events_
-        # a thread's call_soon_threadsafe may have arrived meanwhile (only threads and descriptors being watched
-        # take real time here: with none, the ready queue was empty a moment ago, in _run_once)
-        if (census is not _QUIET or outside) and _internals.has_ready(self):
+        if watched and _internals.has_ready(self):
             return _NO_EVENTS
         if when > self._virtual_time:
             if when > self._budget_end:

@@ -18,6 +18,7 @@ import contextvars
 import heapq
 import inspect
 import threading
+import time
 from asyncio import base_events, events, futures
 from collections.abc import Callable
 from types import CodeType, FrameType
@@ -29,6 +30,7 @@ __all__ = [
     "SeqTimerHandle",
     "idle_pool_worker",
     "is_wrap_future",
+    "newest_thread",
     "next_live_timer",
     "problems",
     "push_timer",
@@ -243,6 +245,13 @@ def _drop_cancelled(loop: Any) -> None:
     loop._timer_cancelled_count = 0
 
 
+def newest_thread() -> threading.Thread | None:
+    """The thread registered last in ``threading``'s table of running threads (a starting thread is added at
+    the end). Beside :func:`thread_count` it tells a census that a thread started since, even if another one
+    ended meanwhile and the count is the same."""
+    return next(reversed(threading._active.values()), None)  # type: ignore[attr-defined]
+
+
 def thread_count() -> int:
     """``threading.active_count()`` without taking the threads' lock (a fifth of the cost; it runs every loop
     iteration). Reading the two tables unlocked can count a thread moving from "starting" to "running" twice,
@@ -348,6 +357,8 @@ def problems() -> list[str]:
         found.append("threading no longer keeps its threads in the dicts _active and _limbo")
     elif thread_count() != threading.active_count():
         found.append("threading.active_count() no longer counts threading._active and threading._limbo")
+    else:
+        found += _newest_thread_problems()
     run_once = getattr(base_events.BaseEventLoop, "_run_once", None)
     names = run_once.__code__.co_names if run_once is not None else ()
     for name in ("_scheduled", "_ready", "_selector", "select", "_timer_cancelled_count"):
@@ -360,6 +371,23 @@ def problems() -> list[str]:
     if _UNTIMED_ACQUIRE_LINE is None:
         found.append("threading.Condition.wait no longer blocks in 'waiter.acquire()' under 'if timeout is None:'")
     return found
+
+
+def _newest_thread_problems() -> list[str]:
+    """Whether a thread that starts is the newest in ``threading._active`` while it runs."""
+    release = threading.Event()
+    thread = threading.Thread(target=release.wait, name="asyncdonkey internals check", daemon=True)
+    thread.start()
+    try:
+        deadline = 200  # start() may return before the thread moved from threading._limbo to _active
+        while thread.ident not in threading._active and deadline:  # type: ignore[attr-defined]
+            time.sleep(0.001)
+            deadline -= 1
+        newest = newest_thread()
+    finally:
+        release.set()
+        thread.join()
+    return [] if newest is thread else ["threading._active no longer lists a starting thread last"]
 
 
 def _handle_problems(loop: Any) -> list[str]:

@@ -228,6 +228,13 @@ def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
         ("virtual clock", f"{ticks}, the loop alone: a task awaiting a timer (s)", _fmt(d.get("loop_s"), 3), "", ""),
         ("virtual clock", f"{ticks}, the loop alone: asyncio.sleep (s)", _fmt(d.get("sleep_loop_s"), 3), "", ""),
         ("virtual clock", f"{ticks}, the loop alone: call_at chain (s)", _fmt(d.get("call_at_chain_s"), 3), "", ""),
+        (
+            "virtual clock",
+            f"{ticks}, the loop alone: a timer queueing a callback (s)",
+            _fmt(d.get("timer_call_soon_chain_s"), 3),
+            "",
+            "",
+        ),
         ("virtual clock", f"{ticks}, plain asyncio without timers (s)", _fmt(d.get("plain_asyncio_s"), 3), "", ""),
         (
             "virtual clock",

@@ -225,9 +225,27 @@ def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
     ticks = f"{d.get('ticks', 10_000):,} ticks"
     return [
         ("virtual clock", f"{ticks} of a 10-part 20 Hz car (s)", _fmt(d.get("car_s"), 3), "", ""),
-        ("virtual clock", f"{ticks}, the loop alone (s)", _fmt(d.get("loop_s"), 3), "", ""),
+        ("virtual clock", f"{ticks}, the loop alone: a task awaiting a timer (s)", _fmt(d.get("loop_s"), 3), "", ""),
+        ("virtual clock", f"{ticks}, the loop alone: asyncio.sleep (s)", _fmt(d.get("sleep_loop_s"), 3), "", ""),
+        ("virtual clock", f"{ticks}, the loop alone: call_at chain (s)", _fmt(d.get("call_at_chain_s"), 3), "", ""),
+        (
+            "virtual clock",
+            f"{ticks}, the loop alone: a timer queueing a callback (s)",
+            _fmt(d.get("timer_call_soon_chain_s"), 3),
+            "",
+            "",
+        ),
         ("virtual clock", f"{ticks}, plain asyncio without timers (s)", _fmt(d.get("plain_asyncio_s"), 3), "", ""),
+        (
+            "virtual clock",
+            f"{ticks}, plain asyncio call_soon chain (s)",
+            _fmt(d.get("plain_call_soon_chain_s"), 3),
+            "",
+            "",
+        ),
     ]
+
+
 def zenoh_rows(d: dict[str, Any]) -> list[Row]:
     """Channels over Zenoh: our figure, with raw Zenoh's (the floor) in the figure's name; no Donkeycar column."""
     rows: list[Row] = []

@@ -7,11 +7,16 @@ awaits ``asyncio.sleep(0.08)`` costs exactly 80 ms of loop time.
 
 How it works, and why this way:
 
-* The loop is a plain :class:`asyncio.SelectorEventLoop` whose :meth:`time` returns a stored float. asyncio
-  only blocks in ``selector.select(timeout)`` when its ready queue is empty, so "every task is waiting" is
-  exactly "select was called with a timeout > 0". There, if no real I/O is waiting, we set virtual time to
-  the earliest live timer's deadline in one step. (Tools that patch the selector's timeout instead spend
-  dozens of no-op loop cycles per jump.)
+* The loop is an :class:`asyncio.SelectorEventLoop` whose :meth:`time` returns a stored float. asyncio only
+  blocks in ``selector.select(timeout)`` when its ready queue is empty, so "every task is waiting" is exactly
+  "select would be called with a timeout > 0". There, if no real I/O is waiting, we set virtual time to the
+  earliest live timer's deadline in one step. (Tools that patch the selector's timeout instead spend dozens of
+  no-op loop cycles per jump.) The loop runs its own version of asyncio's iteration, which takes that decision
+  directly instead of computing a timeout and calling ``select``: with nothing outside to watch, it reads no
+  real clock and makes a system call only once in 64 iterations, so a timer and a jump cost less than one
+  pass of plain asyncio's loop (``benchmarks/virtual_clock.py`` shows both). Its timers and callbacks are
+  asyncio's handles, built field by field; :mod:`asyncdonkey._asyncio_internals` checks every such shortcut
+  against asyncio's own code paths.
 * **Real work holds time still.** Virtual time must not run ahead of work that is really being done for the
   program, or a 1 s sleeper beside a 50 ms thread wakes first. So time stands still, and the loop waits in
   real time, while any of these is busy: executor work (``run_in_executor``, ``asyncio.to_thread``, and any
@@ -30,7 +35,7 @@ How it works, and why this way:
   descriptors registered with the loop (sockets, pipes, ptys) may answer at any moment, or never: they do not
   hold time, but while any is present the loop waits ``autojump_threshold`` of real time for them before each
   jump, so an answer already on its way arrives before time moves. With none present (the pure-virtual case)
-  time jumps at once: 10,000 ticks of a 10-part car take about 0.1 s (`benchmarks/virtual_clock.py`).
+  time jumps at once: 10,000 ticks of a 10-part car take about 0.07 s (`benchmarks/virtual_clock.py`).
 * **Failures are named, once.** Nothing ready, no timer and nothing holding time means the program can never
   finish: :class:`VirtualClockDeadlock` lists the waiting tasks and the blocked threads, after waiting
   ``deadlock_grace_s`` of real time for outside I/O. A jump past ``budget_s`` of virtual time raises
@@ -102,7 +107,7 @@ class VirtualClockLivelock(VirtualClockError):
     """Tasks kept the loop busy without letting virtual time move and without any outside work."""
 
 
-_POLL_EVERY = 64  # a busy loop polls real I/O once in this many iterations
+_POLL_EVERY = 64  # without outside descriptors or working threads, real I/O is polled once in this many iterations
 _LIVELOCK_CHECK_EVERY = 4096  # iterations between livelock checks (a power of two)
 _RESCAN_EVERY = 64  # idle iterations between full thread censuses while the cached one says "quiet"
 
@@ -134,11 +139,20 @@ class _Census:
 
 
 _QUIET = _Census()
+_NO_EVENTS: tuple[()] = ()  # what a poll that found nothing returns (no list made per iteration)
+
+# read on every tick: bound once
+_Future = futures.Future
+_getframe = sys._getframe
+_thread_count = _internals.thread_count
+_newest_thread = _internals.newest_thread
+_WRAP_FUTURE = _internals.WRAP_FUTURE
 
 
 class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
     """The platform selector, counting its registered file descriptors (one is the loop's wake-up pipe). The
-    loop replaces its ``select`` with the virtual-time policy, bound once (this runs every loop iteration)."""
+    loop's own iteration polls it only when its policy says so; in debug mode asyncio's iteration runs instead,
+    and the loop replaces this selector's ``select`` with the same policy."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -155,7 +169,7 @@ class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-ty
         return key
 
 
-class VirtualClockLoop(asyncio.SelectorEventLoop):
+class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
     """A selector event loop whose :meth:`time` is virtual and jumps to the next timer when all tasks wait.
 
     Use it as ``asyncio.Runner(loop_factory=VirtualClockLoop)`` or, in pytest, with ``@pytest.mark.asyncio``
@@ -221,14 +235,19 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._hold_ids = itertools.count()
         self._procs: list[tuple[Any, str]] = []
         self._threads_before: weakref.WeakSet[threading.Thread] = weakref.WeakSet(threading.enumerate())
-        self._quiet_threads = -1  # threading.active_count() when the last census found nothing to watch
+        # The thread count and the newest thread when the last census found nothing to watch (a census is cached
+        # while both stay the same: a thread started since changes the newest even if another one ended). At
+        # first every thread is one from before the loop, so a loop that has not idled yet need not poll.
+        self._quiet_threads = _thread_count()
+        self._quiet_newest = _newest_thread()
         self._rescan = 0
         self._own_fds = selector.n_fds  # the wake-up pipe
         self._busy = 0
         self._spin_since: float | None = None
         self._failure: VirtualClockError | None = None
         self._idle = 0
-        selector.select = functools.partial(self._select, super(_VirtualSelector, selector).select)
+        self._real_select = super(_VirtualSelector, selector).select
+        selector.select = self._select  # asyncio's own iteration (debug mode) selects through the policy
 
     # -- time ---------------------------------------------------------------------------------------------
     def time(self) -> float:
@@ -258,18 +277,30 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     def call_at(self, when: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
         if when is None:
             raise TypeError("when cannot be None")
+        if not self._debug:
+            return _internals.schedule_timer(self, next(self._timer_seq), when, callback, args, context)
         self._check_closed()
-        if self._debug:
-            self._check_thread()
-            self._check_callback(callback, "call_at")
+        self._check_thread()
+        self._check_callback(callback, "call_at")
         timer = _internals.SeqTimerHandle(next(self._timer_seq), when, callback, args, self, context)
         _internals.push_timer(self, timer)
         return timer
 
+    def call_soon(self, callback: Callable[..., Any], *args: Any, context: Any = None) -> asyncio.Handle:
+        if self._debug:
+            return super().call_soon(callback, *args, context=context)
+        return _internals.queue_callback(self, callback, args, context)
+
+    def call_later(self, delay: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
+        if delay is None or self._debug:
+            return super().call_later(delay, callback, *args, context=context)
+        return self.call_at(self._virtual_time + delay, callback, *args, context=context)
+
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
-        fut: asyncio.Future[Any] = futures.Future(loop=self)
-        if _internals.is_wrap_future(sys._getframe(1)):  # asyncio.wrap_future: executor work is on its way
+        fut: asyncio.Future[Any] = _Future(loop=self)
+        # asyncio.wrap_future: executor work is on its way (_internals.is_wrap_future, inlined: runs every tick)
+        if _getframe(1).f_code is _WRAP_FUTURE:
             self._jobs[fut] = _Job("a concurrent.futures job")
             self._quiet_threads = -1
             fut.add_done_callback(self._job_done)
@@ -338,8 +369,9 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
     # -- what holds time, what may answer ------------------------------------------------------------------
     def _census(self, force: bool = False) -> _Census:
         """Classify the threads started since this loop was created (cached while none needs watching)."""
-        count = threading.active_count()
-        if not force and count == self._quiet_threads:
+        count = _thread_count()
+        newest = _newest_thread()
+        if not force and count == self._quiet_threads and newest is self._quiet_newest:
             self._rescan += 1
             if self._rescan < _RESCAN_EVERY:
                 return _QUIET
@@ -371,6 +403,7 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
             frames.clear()
         if not (census.holding or census.live or census.blocked):
             self._quiet_threads = count
+            self._quiet_newest = newest
             return _QUIET
         self._quiet_threads = -1
         return census
@@ -401,58 +434,86 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         return held
 
     # -- the jump ------------------------------------------------------------------------------------------
-    def _select(self, real_select: Callable[[float | None], list[Any]], timeout: float | None) -> list[Any]:
-        if timeout == 0:  # callbacks are ready: a busy iteration, time does not move
-            n = self._busy = self._busy + 1
-            # Without threads at work, real I/O can wait a few iterations. With them, poll every time: the
-            # system call releases the GIL, which a thread needs (a loop spinning on sleep(0) while an executor
-            # opens a port would otherwise hand it over only every switch interval, 5 ms).
-            if n % _POLL_EVERY and not self._jobs and threading.active_count() == self._quiet_threads:
-                return []
-            events_ = real_select(0)
-            if events_:
-                self._busy = 0
-                self._spin_since = None
-            elif not n % _LIVELOCK_CHECK_EVERY:
-                self._check_livelock(n)
-            return events_
+    def _select(self, timeout: float | None) -> Any:
+        """The selector's ``select`` in debug mode, where asyncio's own iteration runs: the same policy."""
+        return self._poll_busy() if timeout == 0 else self._poll_idle(_internals.next_live_timer(self))
+
+    def _poll_busy(self) -> Any:
+        """Callbacks are ready (a busy iteration): time does not move; real I/O is polled now and then."""
+        n = self._busy = self._busy + 1
+        # Without threads at work, real I/O can wait a few iterations. With them, poll every time: the system
+        # call releases the GIL, which a thread needs (a loop spinning on sleep(0) while an executor opens a
+        # port would otherwise hand it over only every switch interval, 5 ms). Time does not move here, so the
+        # thread count alone tells (a thread started as another ended is found by the next idle census).
+        if n % _POLL_EVERY and not self._jobs and _thread_count() == self._quiet_threads:
+            return _NO_EVENTS
+        events_ = self._real_select(0)
+        if events_:
+            self._busy = 0
+            self._spin_since = None
+        elif not n % _LIVELOCK_CHECK_EVERY:
+            self._check_livelock(n)
+        return events_
+
+    def _poll_idle(self, when: float | None) -> Any:
+        """Every task waits (``when``: the earliest live timer's deadline, ``None`` without timers): poll outside
+        I/O, wait while real work holds time, then jump to ``when``.
+
+        This runs once per jump, so the common case (no thread, descriptor, job or hold to watch) reads a few
+        counters and nothing else; the census of threads is cached while it finds none to watch.
+        """
         self._busy = 0
         self._spin_since = None
+        idle = self._idle = self._idle + 1
         # Poll real I/O before moving time. With no outside descriptor only the wake-up pipe could be ready, and
-        # what matters on it (a thread's callback) is already in the ready queue: signals can wait a few jumps.
-        self._idle += 1
-        if self._selector.n_fds > self._own_fds or not self._idle % 8:
-            events_ = real_select(0)
+        # what matters on it (a thread's callback) is already in the ready queue: a signal handler added with
+        # loop.add_signal_handler can wait a few jumps, as it waits a few busy iterations (_POLL_EVERY).
+        outside = self._selector.n_fds > self._own_fds
+        if outside or not idle % _POLL_EVERY:
+            events_ = self._real_select(0)
             if events_:
                 return events_
-        census = self._census()
+        if (
+            self._rescan < _RESCAN_EVERY - 1
+            and _thread_count() == self._quiet_threads
+            and _newest_thread() is self._quiet_newest
+        ):
+            self._rescan += 1  # the cached census still holds: no thread to watch (_census, inlined)
+            census = _QUIET
+        else:
+            census = self._census()
+        # Real time passes here only while something is watched (threads, descriptors, jobs, holds); then a
+        # thread's call_soon_threadsafe may arrive meanwhile, and must run before time moves. With nothing
+        # watched, the ready queue was empty a moment ago (in _run_once) and is not looked at again.
+        watched = outside
         if census is not _QUIET or self._jobs or self._procs or self._holds or self._external_pending:
             held = self._holders(census)
             if held:
-                return self._wait_while_held(real_select, held)
-        live = bool(census.live) or self._selector.n_fds > self._own_fds
-        when = _internals.next_live_timer(self)
+                return self._wait_while_held(held)
+            outside = outside or bool(census.live)
+            when = _internals.next_live_timer(self)  # the holds' busy() ran: read the heap again
+            watched = True
         if when is None:
-            return self._nothing_scheduled(real_select, census)
-        if live and self.autojump_threshold > 0:
-            events_ = real_select(self.autojump_threshold)
+            return self._nothing_scheduled(census)
+        if outside and self.autojump_threshold > 0:
+            events_ = self._real_select(self.autojump_threshold)
             if events_:
                 return events_
-        if _internals.has_ready(self):  # a thread's call_soon_threadsafe arrived meanwhile
-            return []
+        if watched and _internals.has_ready(self):
+            return _NO_EVENTS
         if when > self._virtual_time:
             if when > self._budget_end:
                 raise self._fail(VirtualClockBudgetExceeded(self._budget_message(when, "the next timer")))
             self._virtual_time = when
             self.jumps += 1
-        return []
+        return _NO_EVENTS
 
-    def _wait_while_held(self, real_select: Callable[[float | None], list[Any]], held: list[str]) -> list[Any]:
+    def _wait_while_held(self, held: list[str]) -> list[Any]:
         """Wait in real time while real work holds virtual time; stall after ``stall_timeout_s``."""
         started = time.monotonic()
         pause = 0.0005
         while True:
-            events_ = real_select(pause)  # executor results and threads' call_soon_threadsafe wake us at once
+            events_ = self._real_select(pause)  # executor results and threads' call_soon_threadsafe wake us at once
             if events_ or _internals.has_ready(self):
                 return events_
             held = self._holders(self._census(force=True))
@@ -462,11 +523,11 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
                 raise self._fail(VirtualClockStall(self._stall_message(held)))
             pause = min(pause * 2, 0.002)  # a thread or a hold may end without waking the loop: poll
 
-    def _nothing_scheduled(self, real_select: Callable[[float | None], list[Any]], census: _Census) -> list[Any]:
+    def _nothing_scheduled(self, census: _Census) -> list[Any]:
         """No timer and nothing holding time: only outside I/O can still wake the loop."""
         deadline = time.monotonic() + self.deadlock_grace_s
         while True:
-            events_ = real_select(min(0.02, max(0.0, deadline - time.monotonic())))
+            events_ = self._real_select(min(0.02, max(0.0, deadline - time.monotonic())))
             if events_ or _internals.has_ready(self):
                 return events_
             census = self._census(force=True)

@@ -1,6 +1,7 @@
 """The CPython internals the virtual clock relies on are all present on this Python, and a change is named."""
 
 import sys
+import threading
 
 import pytest
 
@@ -31,7 +32,6 @@ def test_the_loop_refuses_to_start_on_a_python_whose_internals_changed(monkeypat
 
 
 def test_a_thread_blocked_with_and_without_timeout_is_told_apart():
-    import threading
     import time
 
     forever, timed, release = threading.Event(), threading.Event(), threading.Event()
@@ -53,3 +53,30 @@ def test_a_thread_blocked_with_and_without_timeout_is_told_apart():
         for t in threads:
             t.join()
     assert states == ["blocked", "timed", "blocked"]
+
+
+def test_handles_built_field_by_field_match_asyncio_and_a_difference_is_named(monkeypatch):
+    real = internals.queue_callback
+
+    def forgets_a_field(loop, callback, args, context):  # as if asyncio's Handle had grown a field
+        handle = real(loop, callback, args, context)
+        del handle._repr
+        return handle
+
+    monkeypatch.setattr(internals, "queue_callback", forgets_a_field)
+    found = internals.problems()
+    assert found == ["asyncio.Handle has fields the virtual loop does not set as asyncio does: _repr"], found
+
+
+def test_a_thread_count_that_disagrees_with_threading_is_named(monkeypatch):
+    monkeypatch.setattr(internals, "thread_count", lambda: threading.active_count() + 1)
+    assert any("threading.active_count() no longer counts" in p for p in internals.problems())
+
+
+def test_a_timer_cancel_that_differs_from_asyncio_is_named(monkeypatch):
+    def forgets_the_count(handle):  # as if asyncio's loop had started to track cancelled timers differently
+        handle._cancelled = True
+        handle._callback = handle._args = None
+
+    monkeypatch.setattr(internals.SeqTimerHandle, "cancel", forgets_the_count)
+    assert any("TimerHandle.cancel does what" in p for p in internals.problems())

@@ -1,6 +1,7 @@
 """The virtual-clock event loop itself."""
 
 import asyncio
+import contextvars
 import threading
 import time
 import warnings
@@ -197,3 +198,108 @@ def test_wait_for_timeouts_use_virtual_time():
         return loop.time()
 
     assert run_virtual(main) == 30.0
+
+
+def _mixed_workload():
+    """Sleeps, equal deadlines, a timer already due, executor work and a timeout: what each saw, and when."""
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        seen = []
+
+        async def ticker(name, period, n):
+            for _ in range(n):
+                await asyncio.sleep(period)
+                seen.append((name, loop.time()))
+
+        tasks = [asyncio.create_task(ticker("fast", 0.05, 6)), asyncio.create_task(ticker("slow", 0.1, 3))]
+        for i in range(3):
+            loop.call_at(0.1, seen.append, (f"equal{i}", 0.1))
+        await asyncio.to_thread(time.sleep, 0.01)
+        seen.append(("thread done", loop.time()))
+        await asyncio.gather(*tasks)
+        due = loop.create_future()
+        loop.call_at(0.05, due.set_result, None)  # already in the past: fires without moving time
+        await due
+        seen.append(("past timer", loop.time()))
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(asyncio.Event().wait(), timeout=2.5)
+        seen.append(("timeout", loop.time()))
+        return seen
+
+    return main
+
+
+def test_debug_mode_keeps_the_same_virtual_times_and_order():
+    # debug mode runs asyncio's own loop iteration (it times callbacks), the same policy deciding when time moves
+    runs = []
+    for debug in (False, True):
+        with asyncio.Runner(loop_factory=VirtualClockLoop, debug=debug) as runner:
+            runs.append(runner.run(_mixed_workload()()))
+    fast = [("fast", round(0.05 * k, 2)) for k in range(1, 7)]
+    assert [(n, round(t, 9)) for n, t in runs[0] if n == "fast"] == fast
+    assert [(n, round(t, 9)) for n, t in runs[0] if n == "slow"] == [("slow", 0.1), ("slow", 0.2), ("slow", 0.3)]
+    assert runs[0][0] == ("thread done", 0.0)
+    assert [n for n, _ in runs[0] if n.startswith("equal")] == ["equal0", "equal1", "equal2"]
+    assert runs[0][-2:] == [("past timer", 0.3), ("timeout", 2.8)]
+    assert runs[1] == runs[0]
+
+
+@pytest.mark.parametrize("which", ["first 10", "last 250"])  # dropped at the head; most of the heap: rebuilt
+def test_cancelled_timers_never_fire_nor_stop_time_and_do_not_pile_up(which):
+    cancelled = range(10) if which == "first 10" else range(50, 300)
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        fired = []
+        handles = [loop.call_at(1.0 + i, fired.append, i) for i in range(300)]
+        for i in cancelled:
+            handles[i].cancel()
+        jumps = loop.jumps
+        await asyncio.sleep(0)
+        pending = len(loop._scheduled)
+        await asyncio.sleep(400)
+        return fired, loop.jumps - jumps, pending
+
+    fired, jumps, pending = run_virtual(main)
+    live = [i for i in range(300) if i not in cancelled]
+    assert fired == live
+    assert jumps == len(live) + 1  # each live timer and the sleep; never to a cancelled deadline
+    assert pending == len(live)  # no cancelled timer is kept
+
+
+def test_callbacks_run_in_the_context_they_were_given():
+    var = contextvars.ContextVar("var", default="unset")
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        given = contextvars.copy_context()
+        given.run(var.set, "given")
+        var.set("current")
+        seen = []
+        loop.call_soon(lambda: seen.append(("soon", var.get())), context=given)
+        loop.call_soon(lambda: seen.append(("soon, no context", var.get())))
+        loop.call_at(1.0, lambda: seen.append(("at", var.get())), context=given)
+        loop.call_later(2.0, lambda: seen.append(("later, no context", var.get())))
+        var.set("changed after scheduling")
+        await asyncio.sleep(3)
+        return seen
+
+    assert run_virtual(main) == [
+        ("soon", "given"),
+        ("soon, no context", "current"),
+        ("at", "given"),
+        ("later, no context", "current"),
+    ]
+
+
+def test_a_closed_loop_refuses_callbacks_as_asyncio_does():
+    loop = VirtualClockLoop()
+    loop.close()
+    for schedule in (
+        lambda: loop.call_soon(print),
+        lambda: loop.call_at(1.0, print),
+        lambda: loop.call_later(1, print),
+    ):
+        with pytest.raises(RuntimeError, match="Event loop is closed"):
+            schedule()

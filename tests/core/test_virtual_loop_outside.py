@@ -56,6 +56,25 @@ def test_a_thread_working_longer_than_the_grace_is_not_a_deadlock():
     assert run_virtual(main, deadlock_grace_s=0.05) == ("result", 0.0)
 
 
+def test_a_thread_started_as_another_one_ended_still_holds_time():
+    # the loop caches "no thread to watch" while the thread count stays the same: one thread ending as another
+    # starts leaves the count as it was, and the new thread must still be seen
+    end_old = threading.Event()
+    old = threading.Thread(target=end_old.wait, daemon=True)
+    old.start()
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        await asyncio.sleep(1)  # a jump: the census finds nothing to watch, with the old thread counted
+        end_old.set()
+        old.join()
+        fut = loop.create_future()
+        reply_from_thread(loop, fut, "done", 0.05)  # a plain (non-daemon) thread at work: time must wait
+        return await asyncio.wait_for(fut, 10), loop.time()
+
+    assert run_virtual(main) == ("done", 1.0)
+
+
 def test_a_subprocess_working_longer_than_the_grace_is_not_a_deadlock():
     async def main():
         proc = await asyncio.create_subprocess_exec(*SLOW_CHILD, stdout=asyncio.subprocess.PIPE)

@@ -20,6 +20,7 @@ import argparse
 import datetime as dt
 import json
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -87,35 +88,60 @@ def _times(r: float) -> str:
     return f"{r:,.0f}x" if r >= 10 else f"{r:.1f}x"
 
 
+def _cpu_cells(ours: dict[str, Any], dk: dict[str, Any], key: str = "cpu_pct", digits: int = 2) -> tuple[str, str, str]:
+    """Ours, Donkeycar's and the ratio for a CPU figure measured over interleaved rounds: each side's median
+    with its min-max, and the median of the per-round ratio (Donkeycar's over ours, "better by") with its
+    min-max. Figures saved before the rounds existed (one run each) show as plain numbers."""
+
+    def cell(r: dict[str, Any]) -> str:
+        med, lo, hi = r.get(key), r.get(f"{key}_min"), r.get(f"{key}_max")
+        if med is None or lo is None or hi is None:
+            return _fmt(med, digits)
+        return f"{_fmt(med, digits)} ({_fmt(lo, digits)}-{_fmt(hi, digits)})"
+
+    a, b = ours.get(f"{key}_rounds"), dk.get(f"{key}_rounds")
+    if a and b and len(a) == len(b):
+        per_round = sorted(t / o for o, t in zip(a, b, strict=True) if o > 0)
+        ratio = f"{_times(statistics.median(per_round))} ({per_round[0]:.1f}-{per_round[-1]:.1f})"
+    else:
+        ratio = _ratio(ours.get(key), dk.get(key))
+    return cell(ours), cell(dk) if dk else "n/a", ratio
+
+
 def loop_rows(d: dict[str, Any]) -> list[Row]:
     rows: list[Row] = []
+    rounds = _get(d, "method", "rounds")
+    over = f"; median (min-max) of {rounds} rounds" if rounds else ""
     for rate in ("20", "100", "1000"):
         ours, dk = _get(d, "rates", rate, "ours") or {}, _get(d, "rates", rate, "donkeycar") or {}
         precise = _get(d, "rates", rate, "ours_precise") or {}
+        floor = _get(d, "rates", rate, "floor") or {}
+        name = f"loop {rate} Hz"
         o, t = ours.get("rate_error_ppm"), dk.get("rate_error_ppm")
-        shown = "< 1" if o is not None and abs(o) < 1 else _fmt(o, 0)  # below the run's resolution
-        rows.append((f"loop {rate} Hz", "rate error (ppm)", shown, _fmt(t, 0), _ratio(o, t, floor=1.0)))
+        # below twice the fit's standard error (and below 1 ppm in any case) is below what the run resolves
+        res = max(1.0, 2 * (ours.get("rate_error_se_ppm") or 0.0))
+        shown = f"< {_fmt(res, 0)}" if o is not None and abs(o) < res else _fmt(o, 0)
+        rows.append((name, "rate error (ppm)", shown, _fmt(t, 0), _ratio(o, t, floor=res)))
         o, t = ours.get("lateness_p99_ms"), dk.get("lateness_p99_ms")
-        rows.append((f"loop {rate} Hz", "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
-        o = ours.get("cpu_pct")
-        rows.append(
-            (f"loop {rate} Hz", "CPU (% of a core)", _fmt(o), _fmt(dk.get("cpu_pct")), _ratio(o, dk.get("cpu_pct")))
-        )
+        rows.append((name, "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+        rows.append((name, f"CPU (% of a core{over})", *_cpu_cells(ours, dk)))
+        if "cpu_us_per_tick" in ours:
+            fl = f"; bare time.sleep loop {_fmt(floor.get('cpu_us_per_tick'), 0)}" if floor else ""
+            rows.append((name, f"CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0)))
         if precise:
             o = precise.get("lateness_p99_ms")
-            rows.append((f"loop {rate} Hz", "precise: tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
-            o = precise.get("cpu_pct")
-            rows.append(
-                (
-                    f"loop {rate} Hz",
-                    "precise: CPU (% of a core)",
-                    _fmt(o),
-                    _fmt(dk.get("cpu_pct")),
-                    _ratio(o, dk.get("cpu_pct")),
-                )
-            )
-    o, t = _get(d, "idle_cpu_pct", "ours"), _get(d, "idle_cpu_pct", "donkeycar")
-    rows.append(("loop 20 Hz, no poller", "idle CPU (% of a core)", _fmt(o), _fmt(t), _ratio(o, t)))
+            rows.append((name, "precise: tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+            rows.append((name, f"precise: CPU (% of a core{over})", *_cpu_cells(precise, dk)))
+    idle = d.get("idle") or {}
+    ours, dk, floor = idle.get("ours"), idle.get("donkeycar") or {}, idle.get("floor") or {}
+    name = f"loop {_get(d, 'method', 'idle_hz') or 20} Hz, no poller"
+    if ours:
+        rows.append((name, f"idle CPU (% of a core{over})", *_cpu_cells(ours, dk)))
+        fl = f"; bare time.sleep loop {_fmt(floor.get('cpu_us_per_tick'), 0)}" if floor else ""
+        rows.append((name, f"idle CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0)))
+    else:  # figures saved before the rounds existed
+        o, t = _get(d, "idle_cpu_pct", "ours"), _get(d, "idle_cpu_pct", "donkeycar")
+        rows.append((name, "idle CPU (% of a core)", _fmt(o), _fmt(t), _ratio(o, t)))
     o, t = _get(d, "overhead_us", "ours"), _get(d, "overhead_us", "donkeycar")
     rows.append(("loop", "per-part overhead (µs)", _fmt(o), _fmt(t), _ratio(o, t)))
     return rows

@@ -1,0 +1,90 @@
+"""``benchmarks/loop.py`` runs end to end in a few seconds (tiny rounds) and its JSON has the shape
+``benchmarks/run_all.py`` turns into the README table: every configuration of every round, medians inside
+their spreads, per-round ratios to Donkeycar. The figures themselves are the benchmark's business, not the
+test's: a tiny run on a shared machine proves nothing about them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
+ROUNDS = 2
+
+
+def _module(name: str):
+    sys.path.insert(0, str(BENCH))  # the benchmarks import machine_info beside them
+    try:
+        spec = importlib.util.spec_from_file_location(f"_bench_{name}", BENCH / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(BENCH))
+    return mod
+
+
+@pytest.fixture(scope="module")
+def figures() -> dict:
+    cmd = [sys.executable, str(BENCH / "loop.py"), "--json", f"--rounds={ROUNDS}", "--segment-s=0.05"]
+    cmd += ["--ticks=8", "--overhead-ticks=100", "--overhead-repeats=2"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=BENCH.parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout)
+
+
+def test_every_configuration_runs_every_round(figures: dict) -> None:
+    rates = figures["rates"]
+    assert sorted(rates, key=int) == ["20", "100", "1000"]
+    for rate, row in rates.items():
+        expected = {"ours", "donkeycar", "floor"} | ({"ours_precise"} if rate != "1000" else set())
+        assert set(row) == expected, rate
+    assert set(figures["idle"]) == {"ours", "donkeycar", "floor"}
+    for row in [*rates.values(), figures["idle"]]:
+        for who, r in row.items():
+            assert len(r["cpu_pct_rounds"]) == ROUNDS, who
+            assert r["cpu_pct_min"] <= r["cpu_pct"] <= r["cpu_pct_max"], who
+            assert r["cpu_us_per_tick_min"] <= r["cpu_us_per_tick"] <= r["cpu_us_per_tick_max"], who
+            assert r["cpu_pct"] > 0 and r["cpu_us_per_tick"] > 0, who
+            assert r["lateness_p50_ms"] <= r["lateness_p99_ms"] <= r["lateness_max_ms"], who
+
+
+def test_ratios_are_per_round(figures: dict) -> None:
+    for row in [*figures["rates"].values(), figures["idle"]]:
+        dk = row["donkeycar"]["cpu_pct_rounds"]
+        for who in ("ours", "ours_precise"):
+            if who not in row:
+                continue
+            r = row[who]
+            assert r["cpu_ratio_rounds"] == pytest.approx([a / b for a, b in zip(r["cpu_pct_rounds"], dk, strict=True)])
+            assert r["cpu_ratio_min"] <= r["cpu_ratio"] <= r["cpu_ratio_max"]
+        assert "cpu_ratio" not in row["floor"] and "cpu_ratio" not in row["donkeycar"]
+
+
+def test_timing_comes_from_the_long_runs(figures: dict) -> None:
+    # the first round runs ours and Donkeycar for --ticks (x5 at 1 kHz): the rate error's run; Donkeycar's
+    # lateness (which grows with its drift) comes from it alone, ours is pooled over every segment
+    assert figures["rates"]["20"]["ours"]["rate_error_ticks"] == 8
+    assert figures["rates"]["1000"]["donkeycar"]["rate_error_ticks"] == 40
+    assert figures["rates"]["20"]["donkeycar"]["lateness_ticks"] == 8
+    assert figures["rates"]["20"]["ours"]["lateness_ticks"] > 8
+    assert figures["overhead_us"]["ratio"] == pytest.approx(
+        figures["overhead_us"]["ours"] / figures["overhead_us"]["donkeycar"]
+    )
+
+
+def test_run_all_builds_the_readme_rows(figures: dict) -> None:
+    run_all = _module("run_all")
+    rows = run_all.loop_rows(figures)
+    by_figure = {(b, f): (o, t, r) for b, f, o, t, r in rows}
+    ours, dk, ratio = by_figure[("loop 100 Hz", f"CPU (% of a core; median (min-max) of {ROUNDS} rounds)")]
+    assert ours.startswith(f"{figures['rates']['100']['ours']['cpu_pct']:.2f} (") and dk.endswith(")")
+    assert ratio.endswith(")") and "x (" in ratio
+    floor = figures["idle"]["floor"]["cpu_us_per_tick"]
+    assert ("loop 20 Hz, no poller", f"idle CPU per tick (µs; bare time.sleep loop {floor:.0f})") in by_figure
+    table = run_all.markdown(rows, "test machine", "today", quick=True)
+    assert table.count("| loop") == len(rows)

@@ -28,9 +28,11 @@ figures that no longer describe one car: the segments run one after another, in 
 Figures, per configuration:
   * rate error in ppm: the slope of a least-squares line through the tick start times against the period
     asked for (the two endpoints alone would measure their own jitter, not the rate), from the first round,
-    whose ours-default and Donkeycar segments are long runs (``--ticks``, x5 at 1 kHz); other configurations
-    fit one slope through all their segments (one offset each). ``rate_error_se_ppm`` is the fit's standard
-    error: a rate error below it is below what the run resolves,
+    whose car segments (ours in both modes, Donkeycar's) are long runs (``--ticks``, x5 at 1 kHz); the floor
+    and the idle group fit one slope through all their segments (one offset each). ``rate_error_se_ppm`` is the
+    fit's standard error: a rate error below it is below what the run resolves. A deadline loop does not
+    drift: its rate error is the deadlines it skipped when the machine stalled for more than a period,
+    counted beside it,
   * tick lateness p50 / p99 / max in ms, pooled over all segments: tick start minus its deadline as the loop
     reports it (so a skipped deadline does not count as every later tick being late; the floor likewise).
     Donkeycar has no deadlines: its lateness is tick start minus ``t_first + k / rate_hz``, which grows with
@@ -47,7 +49,7 @@ machine's noise only ever adds time).
 asyncdonkey runs on uvloop (as ``Vehicle.start`` does) unless ``--no-uvloop``; Donkeycar runs in the same
 process.
 
-    python benchmarks/loop.py            # 6 rounds of 2.5 s segments, 1,000-tick long runs (about 6 minutes)
+    python benchmarks/loop.py            # 5 rounds of 2 s segments, 1,000-tick long runs (about 6 minutes)
     python benchmarks/loop.py --quick    # 3 rounds of 0.6 s segments, 100-tick long runs (about a minute)
     python benchmarks/loop.py --json     # figures as JSON for benchmarks/run_all.py
 """
@@ -94,7 +96,7 @@ LABELS = {
     "donkeycar": donkeycar_label(),
     "floor": "floor: time.sleep thread",
 }
-FULL = {"rounds": 6, "segment_s": 2.5, "ticks": 1000, "overhead_ticks": 10_000, "overhead_repeats": 7}
+FULL = {"rounds": 5, "segment_s": 2.0, "ticks": 1000, "overhead_ticks": 10_000, "overhead_repeats": 7}
 QUICK = {"rounds": 3, "segment_s": 0.6, "ticks": 100, "overhead_ticks": 3_000, "overhead_repeats": 3}
 
 
@@ -262,8 +264,8 @@ def configs(with_donkey: bool) -> dict[str, list[Config]]:
 
 def _ticks(cfg: Config, rnd: int, opts: dict) -> tuple[int, bool]:
     """Ticks of ``cfg``'s segment in round ``rnd``, and whether it is the configuration's long run: the first
-    round runs ours (default mode) and Donkeycar for ``ticks`` (x5 at 1 kHz), the timing figures' run."""
-    if rnd == 0 and cfg.group != IDLE and cfg.who in ("ours", "donkeycar"):
+    round runs the cars (ours in both modes, Donkeycar's) for ``ticks`` (x5 at 1 kHz), the timing figures' run."""
+    if rnd == 0 and cfg.group != IDLE and cfg.who != "floor":
         return opts["ticks"] * (5 if cfg.rate_hz > 100 else 1), True
     return max(round(opts["segment_s"] * cfg.rate_hz), MIN_SEGMENT_TICKS), False
 
@@ -321,6 +323,8 @@ def figures(cfg: Config, segs: list[Segment]) -> dict:
         "rate_error_ppm": err,
         "rate_error_se_ppm": se,
         "rate_error_ticks": sum(len(s.times) for s in timed),
+        # a deadline loop's rate error is the deadlines it skipped (a stall of the machine, or of the loop)
+        "rate_error_skipped_deadlines": sum(s.skipped_deadlines for s in timed),
         "lateness_p50_ms": float(np.percentile(late, 50)),
         "lateness_p99_ms": float(np.percentile(late, 99)),
         "lateness_max_ms": float(late.max()),
@@ -416,6 +420,7 @@ def table(results: dict) -> str:
         "rate",
         "loop",
         "rate error (ppm)",
+        "skipped",
         "lateness p50 (ms)",
         "p99 (ms)",
         "max (ms)",
@@ -438,6 +443,7 @@ def table(results: dict) -> str:
                     rate,
                     label,
                     f"{r['rate_error_ppm']:+,.1f} ± {r['rate_error_se_ppm']:,.1f}",
+                    r["skipped_deadlines"] if who != "donkeycar" else "",
                     f"{r['lateness_p50_ms']:.3f}",
                     f"{r['lateness_p99_ms']:.3f}",
                     f"{r['lateness_max_ms']:.3f}",

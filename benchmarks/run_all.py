@@ -88,7 +88,9 @@ def _times(r: float) -> str:
     return f"{r:,.0f}x" if r >= 10 else f"{r:.1f}x"
 
 
-def _cpu_cells(ours: dict[str, Any], dk: dict[str, Any], key: str = "cpu_pct", digits: int = 2) -> tuple[str, str, str]:
+def _cpu_cells(
+    ours: dict[str, Any], dk: dict[str, Any], key: str = "cpu_pct", digits: int = 2, ratio: bool = True
+) -> tuple[str, str, str]:
     """Ours, Donkeycar's and the ratio for a CPU figure measured over interleaved rounds: each side's median
     with its min-max, and the median of the per-round ratio (Donkeycar's over ours, "better by") with its
     min-max. Figures saved before the rounds existed (one run each) show as plain numbers."""
@@ -100,12 +102,14 @@ def _cpu_cells(ours: dict[str, Any], dk: dict[str, Any], key: str = "cpu_pct", d
         return f"{_fmt(med, digits)} ({_fmt(lo, digits)}-{_fmt(hi, digits)})"
 
     a, b = ours.get(f"{key}_rounds"), dk.get(f"{key}_rounds")
-    if a and b and len(a) == len(b):
+    if not ratio:
+        shown = ""
+    elif a and b and len(a) == len(b):
         per_round = sorted(t / o for o, t in zip(a, b, strict=True) if o > 0)
-        ratio = f"{_times(statistics.median(per_round))} ({per_round[0]:.1f}-{per_round[-1]:.1f})"
+        shown = f"{statistics.median(per_round):.2f}x ({per_round[0]:.2f}-{per_round[-1]:.2f})"
     else:
-        ratio = _ratio(ours.get(key), dk.get(key))
-    return cell(ours), cell(dk) if dk else "n/a", ratio
+        shown = _ratio(ours.get(key), dk.get(key))
+    return cell(ours), cell(dk) if dk else "n/a", shown
 
 
 def loop_rows(d: dict[str, Any]) -> list[Row]:
@@ -121,13 +125,17 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
         # below twice the fit's standard error (and below 1 ppm in any case) is below what the run resolves
         res = max(1.0, 2 * (ours.get("rate_error_se_ppm") or 0.0))
         shown = f"< {_fmt(res, 0)}" if o is not None and abs(o) < res else _fmt(o, 0)
+        skipped = ours.get("rate_error_skipped_deadlines")
+        if skipped:  # the machine (or the loop) stalled past a period: the rate error is those deadlines
+            shown += f" ({skipped} skipped)"
         rows.append((name, "rate error (ppm)", shown, _fmt(t, 0), _ratio(o, t, floor=res)))
         o, t = ours.get("lateness_p99_ms"), dk.get("lateness_p99_ms")
-        rows.append((name, "tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
+        fl = f"; bare time.sleep loop {_fmt(floor.get('lateness_p99_ms'), 3)}" if floor else ""
+        rows.append((name, f"tick lateness p99 (ms{fl})", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
         rows.append((name, f"CPU (% of a core{over})", *_cpu_cells(ours, dk)))
         if "cpu_us_per_tick" in ours:
             fl = f"; bare time.sleep loop {_fmt(floor.get('cpu_us_per_tick'), 0)}" if floor else ""
-            rows.append((name, f"CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0)))
+            rows.append((name, f"CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0, ratio=False)))
         if precise:
             o = precise.get("lateness_p99_ms")
             rows.append((name, "precise: tick lateness p99 (ms)", _fmt(o, 3), _fmt(t, 3), _ratio(o, t)))
@@ -138,7 +146,7 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
     if ours:
         rows.append((name, f"idle CPU (% of a core{over})", *_cpu_cells(ours, dk)))
         fl = f"; bare time.sleep loop {_fmt(floor.get('cpu_us_per_tick'), 0)}" if floor else ""
-        rows.append((name, f"idle CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0)))
+        rows.append((name, f"idle CPU per tick (µs{fl})", *_cpu_cells(ours, dk, "cpu_us_per_tick", 0, ratio=False)))
     else:  # figures saved before the rounds existed
         o, t = _get(d, "idle_cpu_pct", "ours"), _get(d, "idle_cpu_pct", "donkeycar")
         rows.append((name, "idle CPU (% of a core)", _fmt(o), _fmt(t), _ratio(o, t)))

@@ -66,9 +66,10 @@ def test_ratios_are_per_round(figures: dict) -> None:
 
 
 def test_timing_comes_from_the_long_runs(figures: dict) -> None:
-    # the first round runs ours and Donkeycar for --ticks (x5 at 1 kHz): the rate error's run; Donkeycar's
-    # lateness (which grows with its drift) comes from it alone, ours is pooled over every segment
+    # the first round runs the cars for --ticks (x5 at 1 kHz): the rate error's run; Donkeycar's lateness
+    # (which grows with its drift) comes from it alone, ours is pooled over every segment
     assert figures["rates"]["20"]["ours"]["rate_error_ticks"] == 8
+    assert figures["rates"]["100"]["ours_precise"]["rate_error_ticks"] == 8
     assert figures["rates"]["1000"]["donkeycar"]["rate_error_ticks"] == 40
     assert figures["rates"]["20"]["donkeycar"]["lateness_ticks"] == 8
     assert figures["rates"]["20"]["ours"]["lateness_ticks"] > 8
@@ -84,7 +85,25 @@ def test_run_all_builds_the_readme_rows(figures: dict) -> None:
     ours, dk, ratio = by_figure[("loop 100 Hz", f"CPU (% of a core; median (min-max) of {ROUNDS} rounds)")]
     assert ours.startswith(f"{figures['rates']['100']['ours']['cpu_pct']:.2f} (") and dk.endswith(")")
     assert ratio.endswith(")") and "x (" in ratio
+    floor = figures["rates"]["100"]["floor"]
+    per_tick = by_figure[("loop 100 Hz", f"CPU per tick (µs; bare time.sleep loop {floor['cpu_us_per_tick']:.0f})")]
+    assert per_tick[2] == ""  # the ratio is the CPU row's: same ticks, same wall time
+    assert ("loop 100 Hz", f"tick lateness p99 (ms; bare time.sleep loop {floor['lateness_p99_ms']:.3f})") in by_figure
     floor = figures["idle"]["floor"]["cpu_us_per_tick"]
     assert ("loop 20 Hz, no poller", f"idle CPU per tick (µs; bare time.sleep loop {floor:.0f})") in by_figure
     table = run_all.markdown(rows, "test machine", "today", quick=True)
     assert table.count("| loop") == len(rows)
+
+
+def test_run_all_names_the_skipped_deadlines_behind_a_rate_error(figures: dict) -> None:
+    run_all = _module("run_all")
+    stalled = json.loads(json.dumps(figures))
+    stalled["rates"]["100"]["ours"].update(
+        rate_error_ppm=-3000.0, rate_error_se_ppm=20.0, rate_error_skipped_deadlines=3
+    )
+    rows = {(b, f): o for b, f, o, _t, _r in run_all.loop_rows(stalled)}
+    assert rows[("loop 100 Hz", "rate error (ppm)")] == "-3,000 (3 skipped)"
+    # below twice its standard error a rate error is not resolved: it shows as a bound
+    stalled["rates"]["100"]["ours"].update(rate_error_ppm=-30.0, rate_error_se_ppm=20.0, rate_error_skipped_deadlines=0)
+    rows = {(b, f): o for b, f, o, _t, _r in run_all.loop_rows(stalled)}
+    assert rows[("loop 100 Hz", "rate error (ppm)")] == "< 40"

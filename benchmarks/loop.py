@@ -34,7 +34,8 @@ Figures, per configuration:
     drift: its rate error is the deadlines it skipped when the machine stalled for more than a period,
     counted beside it,
   * tick lateness p50 / p99 / max in ms, pooled over all segments: tick start minus its deadline as the loop
-    reports it (so a skipped deadline does not count as every later tick being late; the floor likewise).
+    reports it (so a skipped deadline does not count as every later tick being late; the floor likewise);
+    beside them the median over rounds of each segment's own p99, which one stalled segment cannot move.
     Donkeycar has no deadlines: its lateness is tick start minus ``t_first + k / rate_hz``, which grows with
     its drift and so with the run's length; it is taken from the long run only,
   * CPU % of one core: process CPU time (all threads: the loop, the poller, Donkeycar's threads) per wall
@@ -205,7 +206,10 @@ def _settle(pause_s: float = SETTLE_S) -> None:
 def ours_segment(rate_hz: float, ticks: int, use_uvloop: bool, precise: bool = False, poller: bool = True) -> Segment:
     v = Vehicle()
     stamp = _graph(v, N_PARTS, "ours" if poller else None)
-    report = run_blocking(v.run(rate_hz, ticks, precise=precise), use_uvloop=use_uvloop)
+    # bounded in time as well: a machine stalling for seconds makes the loop skip deadlines, and the segment
+    # would otherwise run on until its ticks were done
+    limit = ticks / rate_hz + 1.0
+    report = run_blocking(v.run(rate_hz, ticks, duration=limit, precise=precise), use_uvloop=use_uvloop)
     # Lateness against each tick's own deadline, as the loop measures it: when a stall made the loop skip a
     # deadline, the ticks after it are due one period later, not "late by a period" from then on.
     late = v.profiler.lateness.recent(drop_last=False)
@@ -329,6 +333,7 @@ def figures(cfg: Config, segs: list[Segment]) -> dict:
         "lateness_p99_ms": float(np.percentile(late, 99)),
         "lateness_max_ms": float(late.max()),
         "lateness_ticks": len(late),
+        **_p99_per_round(cfg, segs),
         "skipped_deadlines": sum(s.skipped_deadlines for s in segs),
         "cpu_pct": cpu["median"],
         "cpu_pct_min": cpu["min"],
@@ -341,6 +346,15 @@ def figures(cfg: Config, segs: list[Segment]) -> dict:
     }
 
 
+def _p99_per_round(cfg: Config, segs: list[Segment]) -> dict:
+    """Each segment's own lateness p99 and their median: unlike the pooled p99, one segment caught in a stall
+    of the machine does not move it (Donkeycar's lateness is its drift: no deadlines, no per-round figure)."""
+    if cfg.who == "donkeycar":
+        return {}
+    p99 = [float(np.percentile(s.lateness_s, 99)) * 1e3 for s in segs]
+    return {"lateness_p99_ms_median_of_rounds": statistics.median(p99), "lateness_p99_ms_rounds": p99}
+
+
 def add_ratios(row: dict, who: str) -> None:
     """``row[who]``'s CPU over Donkeycar's, per round: median, min, max."""
     ours, dk = row[who]["cpu_pct_rounds"], row["donkeycar"]["cpu_pct_rounds"]
@@ -348,7 +362,7 @@ def add_ratios(row: dict, who: str) -> None:
     row[who].update(cpu_ratio=r["median"], cpu_ratio_min=r["min"], cpu_ratio_max=r["max"], cpu_ratio_rounds=r["rounds"])
 
 
-def _flat_out_tick(make, n_parts: int, ticks: int, use_uvloop: bool) -> float:
+def _flat_out_tick(make: str, n_parts: int, ticks: int, use_uvloop: bool) -> float:
     """Seconds per tick of a car with ``n_parts`` trivial parts, run with no wait between ticks."""
     if make == "ours":
         v = Vehicle()
@@ -384,12 +398,13 @@ def overhead(ticks: int, repeats: int, use_uvloop: bool, with_donkey: bool) -> d
 
 def measure(opts: dict, use_uvloop: bool, with_donkey: bool) -> dict:
     t0 = time.monotonic()
+    machine = describe(with_load=True)  # the load before the runs: they add their own
     segments = run_rounds(opts, use_uvloop, with_donkey)
     results: dict = {
         "method": {**opts, "interleaved": "sequential", "idle_hz": IDLE_HZ, "uvloop": use_uvloop},
         "ticks": opts["ticks"],
         "uvloop": use_uvloop,
-        "machine": describe(with_load=True),
+        "machine": machine,
         "rates": {},
         IDLE: {},
     }
@@ -424,6 +439,7 @@ def table(results: dict) -> str:
         "lateness p50 (ms)",
         "p99 (ms)",
         "max (ms)",
+        "p99 per round, median",
         "CPU % median",
         "CPU % min-max",
         "µs/tick",
@@ -447,6 +463,7 @@ def table(results: dict) -> str:
                     f"{r['lateness_p50_ms']:.3f}",
                     f"{r['lateness_p99_ms']:.3f}",
                     f"{r['lateness_max_ms']:.3f}",
+                    f"{r['lateness_p99_ms_median_of_rounds']:.3f}" if who != "donkeycar" else "",
                     f"{r['cpu_pct']:.2f}",
                     _range(r, "cpu_pct"),
                     f"{r['cpu_us_per_tick']:.0f}",

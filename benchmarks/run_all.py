@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import math
 import re
 import statistics
 import subprocess
@@ -130,7 +131,7 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
         name = f"loop {rate} Hz"
         o, t = ours.get("rate_error_ppm"), dk.get("rate_error_ppm")
         # below twice the fit's standard error (and below 1 ppm in any case) is below what the run resolves
-        res = max(1.0, 2 * (ours.get("rate_error_se_ppm") or 0.0))
+        res = float(max(1, math.ceil(2 * (ours.get("rate_error_se_ppm") or 0.0))))
         shown = f"< {_fmt(res, 0)}" if o is not None and abs(o) < res else _fmt(o, 0)
         skipped = ours.get("rate_error_skipped_deadlines")
         if skipped:  # the machine (or the loop) stalled past a period: the rate error is those deadlines

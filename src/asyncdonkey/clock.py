@@ -26,7 +26,7 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
   ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
   is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the
-  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 30 µs), so that 99 % of the
+  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
@@ -115,12 +115,12 @@ class Schedule:
 WaitMode = Literal["timerfd", "loop-timer", "virtual"]
 
 # Precise mode: how the spin window is learned from observed timer lateness.
-_LATE_SAMPLES = 256  # recent lateness samples kept
+_LATE_SAMPLES = 1024  # recent lateness samples kept: on a VM the slow wake-ups come in bursts, minutes apart
 _LATE_QUANTILE = 0.99  # the ticks precise mode keeps within its tolerance
 _LATE_REFRESH = 32  # recompute the window every this many samples
 #: The lateness precise mode accepts at that quantile: the window is the quantile less this. Spinning the
 #: last few microseconds too would cost CPU on every tick for nothing a car can notice.
-PRECISE_TOLERANCE_S = 30e-6
+PRECISE_TOLERANCE_S = 20e-6
 _WINDOW_FLOOR_S = 5e-6  # the window is at least this (the spin's own check-to-start cost) ...
 #: ... and at most this: measured on a busy 2-core VM, spinning longer than about half a millisecond made the
 #: next wake-ups *later* (the scheduler's fairness counts the spin against the task), so the window grew, and

@@ -172,11 +172,10 @@ def loop_overhead(ticks: int) -> dict:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import loop as loop_bench
 
-    out = {"ours_us": loop_bench.ours_overhead(ticks, True)}
-    try:
-        out["donkeycar_us"] = loop_bench.donkey_overhead(ticks)
-    except Exception:  # Donkeycar not installed
-        pass
+    figures = loop_bench.overhead(ticks, 3, True, loop_bench.DonkeyVehicle is not None)
+    out = {"ours_us": figures["ours"]}
+    if "donkeycar" in figures:
+        out["donkeycar_us"] = figures["donkeycar"]
     return out
 
 

@@ -26,7 +26,7 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
   ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
   is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the
-  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
+  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 10 µs), so that 99 % of the
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import math
 import time
@@ -118,9 +119,10 @@ WaitMode = Literal["timerfd", "loop-timer", "virtual"]
 _LATE_SAMPLES = 1024  # recent lateness samples kept: on a VM the slow wake-ups come in bursts, minutes apart
 _LATE_QUANTILE = 0.99  # the ticks precise mode keeps within its tolerance
 _LATE_REFRESH = 32  # recompute the window every this many samples
+_LATE_WARMUP = 64  # waits with the start window before the first estimate (a few early samples mislead)
 #: The lateness precise mode accepts at that quantile: the window is the quantile less this. Spinning the
 #: last few microseconds too would cost CPU on every tick for nothing a car can notice.
-PRECISE_TOLERANCE_S = 20e-6
+PRECISE_TOLERANCE_S = 10e-6
 _WINDOW_FLOOR_S = 5e-6  # the window is at least this (the spin's own check-to-start cost) ...
 #: ... and at most this: measured on a busy 2-core VM, spinning longer than about half a millisecond made the
 #: next wake-ups *later* (the scheduler's fairness counts the spin against the task), so the window grew, and
@@ -246,6 +248,7 @@ class DeadlineWaiter:
         "_now",
         "_on_loop_timer_cb",
         "_on_wake_cb",
+        "_refresh_due",
         "_tfd",
         "_timer_slop",
         "_vfut",
@@ -278,6 +281,7 @@ class DeadlineWaiter:
         self.spin_window_s = _WINDOW_START_S if self.precise else 0.0
         self._late = array("d")
         self._late_n = 0
+        self._refresh_due = False
         self._last_deadline = math.inf
         #: Waits that actually slept (the deadline had not passed yet).
         self.waits = 0
@@ -486,6 +490,8 @@ class DeadlineWaiter:
         before it (at most :data:`SPIN_BUDGET` of the time since the previous deadline)."""
         if not self.precise:
             return deadline
+        if self._refresh_due:
+            self._refresh_window()
         gap, self._last_deadline = deadline - self._last_deadline, deadline
         window = self.spin_window_s
         if gap > 0 and window > gap * SPIN_BUDGET:
@@ -516,7 +522,8 @@ class DeadlineWaiter:
         return not (wake is not None and wake.done() and loop.time() < deadline)
 
     def _learn(self, late: float) -> None:
-        """Keep the recent lateness of the early timer; every few waits, set the window to its high quantile."""
+        """Keep the recent lateness of the early timer. Called between the wake-up and the deadline, so it only
+        stores: the window is worked out again when the next wait is armed (:meth:`_target`), after the work."""
         samples = self._late
         n = self._late_n
         if len(samples) < _LATE_SAMPLES:
@@ -524,10 +531,16 @@ class DeadlineWaiter:
         else:
             samples[n % _LATE_SAMPLES] = late
         n = self._late_n = n + 1
-        if n % _LATE_REFRESH == 0 or n == 8:
-            ordered = sorted(samples)
-            q = ordered[min(len(ordered) - 1, int(_LATE_QUANTILE * len(ordered)))]
-            self.spin_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
+        if n % _LATE_REFRESH == 0 and n >= _LATE_WARMUP:
+            self._refresh_due = True
+
+    def _refresh_window(self) -> None:
+        """Set the spin window to the high quantile of the recent lateness, less the tolerance."""
+        self._refresh_due = False
+        samples = self._late
+        rank = len(samples) - min(len(samples) - 1, int(_LATE_QUANTILE * len(samples)))  # from the top, 1-based
+        q = heapq.nlargest(rank, samples)[-1]
+        self.spin_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

@@ -131,7 +131,10 @@ _WINDOW_CEIL_S = 0.5e-3
 #: ... and at most this fraction of the time between successive deadlines: a loaded machine's preemption
 #: outliers cannot be spun away, and chasing them would make precise mode spin for a large part of each period.
 SPIN_BUDGET = 0.03
-_WINDOW_START_S = 0.5e-3  # until the first samples are in
+_WINDOW_START_S = 0.5e-3  # until the first samples are in, when no precise waiter has learned one yet
+#: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
+#: waiter starts from instead of the half-millisecond guess (a drive restarted, a second periodic task).
+_learned_window_s: float | None = None
 
 #: Set to False to keep waits off timerfd (tests force the fallback this way; it is also the escape hatch for a
 #: kernel or sandbox where timerfd misbehaves).
@@ -278,7 +281,8 @@ class DeadlineWaiter:
         self._on_loop_timer_cb = self._on_loop_timer
         self.precise = bool(precise) and not clock.is_virtual
         #: Precise mode: seconds before the deadline the timer is armed; the rest is spun. Learned.
-        self.spin_window_s = _WINDOW_START_S if self.precise else 0.0
+        start = _WINDOW_START_S if _learned_window_s is None else _learned_window_s
+        self.spin_window_s = start if self.precise else 0.0
         self._late = array("d")
         self._late_n = 0
         self._refresh_due = False
@@ -540,7 +544,8 @@ class DeadlineWaiter:
         samples = self._late
         rank = len(samples) - min(len(samples) - 1, int(_LATE_QUANTILE * len(samples)))  # from the top, 1-based
         q = heapq.nlargest(rank, samples)[-1]
-        self.spin_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
+        global _learned_window_s
+        self.spin_window_s = _learned_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

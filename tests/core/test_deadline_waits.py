@@ -508,3 +508,16 @@ def test_arming_a_timerfd_that_is_gone_raises_oserror_with_its_errno():
     with pytest.raises(OSError) as info:
         tfd.arm(time.monotonic_ns() + 10**9)
     assert info.value.errno in (errno.EBADF, errno.EINVAL)  # EINVAL if the number was reused meanwhile
+
+
+def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
+    async def main() -> tuple[float, float]:
+        with DeadlineWaiter(precise=True) as first:
+            await _lateness_of_waits(first, clock._LATE_WARMUP + 2, 0.002)
+            learned = first.spin_window_s
+        with DeadlineWaiter(precise=True) as second:
+            return learned, second.spin_window_s
+
+    learned, start = run_on(uvloop.new_event_loop, main())
+    assert learned != clock._WINDOW_START_S or learned == clock._WINDOW_CEIL_S  # it did learn
+    assert start == learned  # the machine's wake-up latency, not the half-millisecond guess

@@ -114,3 +114,10 @@ def test_run_all_names_the_skipped_deadlines_behind_a_rate_error(figures: dict) 
     stalled["rates"]["100"]["ours"].update(rate_error_ppm=-30.0, rate_error_se_ppm=20.0, rate_error_skipped_deadlines=0)
     rows = {(b, f): o for b, f, o, _t, _r in run_all.loop_rows(stalled)}
     assert rows[("loop 100 Hz", "rate error (ppm)")] == "< 40"
+
+
+def test_the_safety_benchmark_takes_its_per_part_overhead_from_the_loop_benchmark():
+    """benchmarks/safety.py reuses the loop benchmark's measure: a rename there must not break it silently."""
+    out = _module("safety").loop_overhead(300)
+    assert out["ours_us"] > 0
+    assert out["donkeycar_us"] > 0  # make test installs Donkeycar

@@ -275,7 +275,7 @@ class DeadlineWaiter:
         self._tfd: _timerfd.Timerfd | None = None
         self._closed = False
         # call_at(): the pending callback, its deadline and when its timer is armed (earlier in precise mode)
-        self._call: Callable[[], object] | None = None
+        self._call: Callable[[], float | None] | None = None
         self._call_deadline = self._call_target = math.inf
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
         self._on_loop_timer_cb = self._on_loop_timer
@@ -335,14 +335,7 @@ class DeadlineWaiter:
             # the next readiness finds nothing pending and consumes the expiry then.
             deadline = callback()
             if deadline is not None and self._call is None:
-                self._call = callback
-                self._call_deadline = deadline
-                target = self._call_target = self._target(deadline) if self.precise else deadline
-                self.waits += 1
-                if tfd is not None and tfd is self._tfd:
-                    tfd.arm(math.ceil(target * 1e9))
-                else:
-                    self._arm(target, self._now())
+                self._pend(callback, deadline)
             return
         wakeup = self._wakeup
         if wakeup.waiting:
@@ -449,10 +442,19 @@ class DeadlineWaiter:
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
         self.cancel_call()
+        self._pend(callback, deadline)
+
+    def _pend(self, callback: Callable[[], float | None], deadline: float) -> None:
+        """Make ``callback`` the pending call at ``deadline`` and arm for it (from :meth:`call_at`, and again
+        after each call that returned its next deadline)."""
         self._call = callback
         self._call_deadline = deadline
         if self.mode == "virtual":
-            self._virtual_arm(deadline)
+            # An exact loop timer whose callback is queued for the next pass, as a task woken by a timer would
+            # be: among tasks and callbacks due at the same virtual instant, the order is what it was for a task
+            # awaiting wait_until (their timers' order), run after run.
+            loop = self._loop
+            self._handle = loop.call_at(deadline, loop.call_soon, self._virtual_fire)
             return
         target = self._call_target = self._target(deadline)
         self.waits += 1
@@ -470,13 +472,6 @@ class DeadlineWaiter:
         else:
             self._disarm()
 
-    def _virtual_arm(self, deadline: float) -> None:
-        # An exact loop timer whose callback is queued for the next pass, as a task woken by a timer would be:
-        # among tasks and callbacks due at the same virtual instant, the order is what it was for a task awaiting
-        # wait_until (their timers' order), run after run.
-        loop = self._loop
-        self._handle = loop.call_at(deadline, loop.call_soon, self._virtual_fire)
-
     def _virtual_fire(self) -> None:
         callback = self._call
         if callback is None:  # cancelled after its timer fired
@@ -485,9 +480,7 @@ class DeadlineWaiter:
         self._handle = None
         deadline = callback()
         if deadline is not None and self._call is None:
-            self._call = callback
-            self._call_deadline = deadline
-            self._virtual_arm(deadline)
+            self._pend(callback, deadline)
 
     def _target(self, deadline: float) -> float:
         """When to arm the timer for ``deadline``: the deadline itself, or in precise mode the learned spin window

@@ -47,6 +47,8 @@ import time
 import weakref
 from array import array
 from collections.abc import Callable
+from math import ceil
+from os import read as _read
 from typing import Any, Literal
 
 from . import _timerfd
@@ -135,6 +137,10 @@ _WINDOW_START_S = 0.5e-3  # until the first samples are in, when no precise wait
 #: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
 #: waiter starts from instead of the half-millisecond guess (a drive restarted, a second periodic task).
 _learned_window_s: float | None = None
+
+#: How far a periodic timer's grid (``call_at(period=...)``) may fall behind the deadlines it stands for before it
+#: is armed again on a new grid: it drifts by at most a nanosecond a period (see :meth:`DeadlineWaiter.call_at`).
+_GRID_SLACK_NS = 2_000
 
 #: Set to False to keep waits off timerfd (tests force the fallback this way; it is also the escape hatch for a
 #: kernel or sandbox where timerfd misbehaves).
@@ -234,16 +240,21 @@ class DeadlineWaiter:
     What a wait costs on Linux: one ``timerfd_settime`` to arm, one ``epoll`` wake-up of the loop, and the
     timer's loop callback resuming the waiting task directly (no Future, no extra loop pass, no ``read()``
     unless the task was busy elsewhere when the timer fired). Nothing is allocated per wait beyond a few numbers
-    (the deadline in nanoseconds).
+    (the deadline in nanoseconds). A periodic :meth:`call_at` (``period=``) does not even arm: its timer is
+    periodic and each wake-up reads the expiry count instead.
     """
 
     __slots__ = (
         "__weakref__",
         "_call",
         "_call_deadline",
+        "_call_early",
         "_call_target",
         "_closed",
+        "_fast_arm",
+        "_grid_ns",
         "_handle",
+        "_interval_ns",
         "_last_deadline",
         "_late",
         "_late_n",
@@ -273,10 +284,16 @@ class DeadlineWaiter:
         self._watched: asyncio.Future[Any] | None = None
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._tfd: _timerfd.Timerfd | None = None
+        #: the timerfd's arm(deadline_ns) when a call_at re-arms for the deadline itself (timerfd, not precise)
+        self._fast_arm: Callable[[int], None] | None = None
         self._closed = False
         # call_at(): the pending callback, its deadline and when its timer is armed (earlier in precise mode)
         self._call: Callable[[], float | None] | None = None
         self._call_deadline = self._call_target = math.inf
+        self._call_early = False  # call_at(early=True): precise mode leaves the spin to the callback
+        # call_at(period=...): the periodic timer's interval (0: armed once per deadline) and its next expiry
+        self._interval_ns = 0
+        self._grid_ns = -1
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
         self._on_loop_timer_cb = self._on_loop_timer
         self.precise = bool(precise) and not clock.is_virtual
@@ -310,6 +327,7 @@ class DeadlineWaiter:
             return
         self._tfd = tfd
         self.mode = "timerfd"
+        self._fast_arm = None if self.precise else tfd.arm
         # an unclosed waiter must not leak its fd once collected (the loop's registration dies with the loop)
         weakref.finalize(self, tfd.close)
 
@@ -319,24 +337,53 @@ class DeadlineWaiter:
         callback, re-arming for the deadline it returns, or resume the waiting task."""
         callback = self._call
         if callback is not None:
+            interval = self._interval_ns
+            if interval:  # a periodic timer: consume its expiry, or it stays readable
+                try:
+                    _read(tfd.fd, 8)  # type: ignore[union-attr]
+                except BlockingIOError:  # a readiness left from an earlier arming: nothing fired
+                    return
             t = self._now()
             target = self._call_target
             if t < target:  # a readiness left from an earlier arming, or a loop timer rounded early: not yet
+                self._grid_ns = -1  # (a periodic timer is armed afresh after this one-shot)
                 self._arm(target, t)
                 return
             self._call = None
             if self.precise:
                 self._learn(t - target)
-                deadline = self._call_deadline
-                now = self._now
-                while t < deadline:  # the last stretch is spun on the clock
-                    t = now()
+                if not self._call_early:
+                    deadline = self._call_deadline
+                    now = self._now
+                    while t < deadline:  # the last stretch is spun on the clock
+                        t = now()
             # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series,
             # the next readiness finds nothing pending and consumes the expiry then.
             deadline = callback()
             if deadline is not None and self._call is None:
-                self._pend(callback, deadline)
+                arm = self._fast_arm
+                if arm is None:
+                    self._pend(callback, deadline)
+                    return
+                # _pend's timerfd case without precise mode, written out: this runs once per period
+                self._call = callback
+                self._call_deadline = self._call_target = deadline
+                self.waits += 1
+                ns = ceil(deadline * 1e9)
+                if interval:
+                    grid = self._grid_ns + interval
+                    if 0 <= grid - ns <= _GRID_SLACK_NS:  # on the grid: the timer is already armed for it
+                        self._grid_ns = grid
+                        return
+                    self._grid_ns = ns
+                    self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
+                    return
+                arm(ns)
+            elif interval and self._call is None:  # the series ended: stop the periodic timer
+                self._end_periodic()
             return
+        if self._interval_ns:  # a periodic timer outlived its series (its callback raised): stop it
+            self._end_periodic()
         wakeup = self._wakeup
         if wakeup.waiting:
             # No read() here: the waiter re-arms (which clears the expiry) before the loop polls again, or
@@ -345,6 +392,12 @@ class DeadlineWaiter:
             wakeup.fire()
         elif tfd is not None:
             tfd.fired()
+
+    def _end_periodic(self) -> None:
+        self._interval_ns = 0
+        tfd = self._tfd
+        if tfd is not None and tfd.fd >= 0:
+            tfd.arm(0)  # disarms, and clears a pending expiry
 
     def _on_loop_timer(self) -> None:
         self._handle = None
@@ -427,7 +480,14 @@ class DeadlineWaiter:
             self._handle = None
 
     # --------------------------------------------------------------------------------- calling back
-    def call_at(self, deadline: float, callback: Callable[[], float | None]) -> None:
+    def call_at(
+        self,
+        deadline: float,
+        callback: Callable[[], float | None],
+        *,
+        early: bool = False,
+        period: float | None = None,
+    ) -> None:
         """Call ``callback()`` from the loop at (never before) ``deadline`` on the runtime clock; when it returns
         a number, call it again at that deadline, and so on until it returns ``None``.
 
@@ -438,10 +498,29 @@ class DeadlineWaiter:
         timer callback). A deadline already passed calls back on the next loop pass, never from inside this
         call. One pending call per waiter, and not while a :meth:`wait_until` is waiting; :meth:`cancel_call`
         drops it.
+
+        ``early=True``: in precise mode, call back as soon as the early timer wakes, up to the spin window
+        before the deadline, and leave the last stretch to the callback (``while now() < deadline``). A callback
+        that spins itself starts its work on the instruction after the spin; when the waiter spins instead, the
+        call into the callback comes after the deadline, and on a small board that call, on caches gone cold
+        over the period, takes tens of microseconds. Without precise mode it changes nothing.
+
+        ``period``: the deadlines the callback returns are mostly ``period`` seconds apart (a drive's ticks).
+        On a timerfd outside precise mode the timer is then armed periodic, on a grid of whole nanoseconds
+        never before the deadlines: a deadline on the grid re-arms nothing, the kernel moves the timer on by
+        itself; any other deadline (a skip after an overrun, a grid drifted more than
+        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. Precise mode arms each wait
+        afresh (its window moves as it learns).
         """
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
         self.cancel_call()
+        self._call_early = bool(early)
+        if period is not None and not (period > 0 and math.isfinite(period)):
+            raise ValueError(f"DeadlineWaiter.call_at: period must be a positive number of seconds, got {period!r}")
+        # one nanosecond over the period: the grid then never falls before the deadlines it stands for (their
+        # own nanoseconds round up), and drifts past them by at most a nanosecond a period, until re-armed
+        self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._fast_arm is not None else 0
         self._pend(callback, deadline)
 
     def _pend(self, callback: Callable[[], float | None], deadline: float) -> None:
@@ -458,6 +537,11 @@ class DeadlineWaiter:
             return
         target = self._call_target = self._target(deadline)
         self.waits += 1
+        interval = self._interval_ns
+        if interval:
+            ns = self._grid_ns = ceil(target * 1e9)
+            self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
+            return
         self._arm(target, self._now())
 
     def cancel_call(self) -> None:
@@ -465,6 +549,7 @@ class DeadlineWaiter:
         if self._call is None:
             return
         self._call = None
+        self._interval_ns = 0
         if self.mode == "virtual":
             if self._handle is not None:
                 self._handle.cancel()
@@ -557,6 +642,8 @@ class DeadlineWaiter:
             with contextlib.suppress(Exception):
                 loop.remove_reader(tfd.fd)
         tfd.close()
+        self._fast_arm = None
+        self._interval_ns = 0
         self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers

@@ -261,7 +261,7 @@ class Drive:
         if any(e.awaits for e in self.tick_entries):
             await self._drive_from_task(ticks)
         else:
-            await self._drive_from_timer(ticks)
+            await self._drive_from_timer(ticks, 1.0 / rate_hz)
         self.stop_reason = self.stop_reason or "stop()"
 
     def _ticks(
@@ -290,31 +290,42 @@ class Drive:
         buf = table.buf
         window = table.window
         ncol = table.ncol
-        commit = table.commit
         block_report_s = self.block_report_s
         part_failed = self._part_failed
         report_block = self._report_block
         jitter_log = LogThrottle(1.0)
         nan = math.nan
-        t0 = now()
+        t0 = end = now()
         self.first_start = self.last_start = self.last_end = t0
         sched = Schedule(rate_hz, t0)
         period = sched.period
-        end_at = None if duration is None else t0 + duration
+        # Schedule's on-time step, written out below (Schedule.advance takes the rest): deadline k is t0 + k / rate
+        k, rate = sched.k, sched.rate_hz
+        behind = period + _TIME_EPS  # Schedule.advance's test for "more than a period behind"
+        deadline = sched.deadline
+        fold = table.fold_rows
+        end_at = math.inf if duration is None else t0 + duration
+        stop_at = math.inf if max_loop_count is None else max_loop_count
+        loops = self.loops
+        precise = self.waiter.precise  # never on the virtual clock, whose time stands still during a tick
         while not self.stop_requested:
-            if max_loop_count is not None and self.loops >= max_loop_count:
+            if loops >= stop_at:
                 self.stop_reason = self.stop_reason or "max_loop_count"
                 return
-            deadline = sched.deadline
-            if end_at is not None and deadline >= end_at:
+            if deadline >= end_at:
                 self.stop_reason = self.stop_reason or "duration"
                 return
-            if now() < deadline:
+            if end < deadline:  # the last tick's end (or the start): early, so wait
                 yield deadline
                 if self.stop_requested:
                     return
-            self.last_start = t = start = now()
-            loops = self.loops
+                start = now()
+                if precise:  # precise mode calls back early: the last stretch is spun here
+                    while start < deadline:
+                        start = now()
+            else:
+                start = now()
+            self.last_start = t = start
             if loops == 0:
                 self.first_start = start
             if dormant:
@@ -377,20 +388,26 @@ class Drive:
 
             self.last_end = end = now()
             buf[pos] = end
-            commit()
-            self.loops = loops + 1
-            over = end - start - period
-            if over > _TIME_EPS:
+            self.loops = table.rows = loops = loops + 1  # TickTable.commit, written out
+            if not loops % fold:
+                table.fold()
+            if end - start > behind:
                 self.overruns += 1
                 more = jitter_log.ready("jitter", end) if verbose else None
                 if more is not None:
+                    over = end - start - period
                     logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
-            if verbose and report_every and self.loops % report_every == 0:
+            if verbose and report_every and loops % report_every == 0:
                 logger.info("%s", profiler.table())
-            # more than a period behind: the missed deadlines are skipped and counted, never burst
-            self.skipped += sched.advance(end)
+            k += 1
+            deadline = t0 + k / rate
+            if end - deadline > behind:
+                # more than a period behind: the missed deadlines are skipped and counted, never burst
+                sched.k = k - 1
+                self.skipped += sched.advance(end)
+                k, deadline = sched.k, sched.deadline
 
-    async def _drive_from_timer(self, ticks: Generator[Any, Any, None]) -> None:
+    async def _drive_from_timer(self, ticks: Generator[Any, Any, None], period: float) -> None:
         """Every tick runs from the deadline timer's callback; this task only waits for the drive to end.
 
         The future it waits on is also the drive's wake future: a stop request completes it (and the timer call is
@@ -415,7 +432,8 @@ class Drive:
         deadline = on_deadline()  # the first tick is due at once
         waiter = self.waiter
         if deadline is not None:
-            waiter.call_at(deadline, on_deadline)
+            # the ticks spin precise mode's last stretch themselves, and are mostly a period apart
+            waiter.call_at(deadline, on_deadline, early=True, period=period)
         try:
             await done
         finally:

@@ -521,3 +521,139 @@ def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
     learned, start = run_on(uvloop.new_event_loop, main())
     assert learned != clock._WINDOW_START_S or learned == clock._WINDOW_CEIL_S  # it did learn
     assert start == learned  # the machine's wake-up latency, not the half-millisecond guess
+
+
+# ------------------------------------------------------------------------------------ periodic timerfd
+def _timerfd_state(fd: int) -> tuple[int, int]:
+    """What the kernel holds for a timerfd (``timerfd_gettime``): nanoseconds to its next expiry (0: disarmed)
+    and its interval (0: one-shot)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    spec = (ctypes.c_long * 4)()
+    assert libc.timerfd_gettime(fd, spec) == 0, os.strerror(ctypes.get_errno())
+    return spec[2] * 10**9 + spec[3], spec[0] * 10**9 + spec[1]
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loop_factory):
+    """On the grid, the kernel moves the timer on by itself: one arming for the whole series. A deadline off
+    the grid (a skip after an overrun) arms a new grid; the series' end leaves the timer disarmed."""
+    period = 0.004
+
+    async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], tuple[int, int]]:
+        waiter = DeadlineWaiter()
+        tfd = waiter._tfd
+        assert tfd is not None and waiter.mode == "timerfd"
+        armed: list[int] = []
+        arm_every = tfd.arm_every
+
+        def counting_arm_every(first_ns: int, interval_ns: int) -> None:
+            armed.append(first_ns)
+            arm_every(first_ns, interval_ns)
+
+        tfd.arm_every = counting_arm_every
+        now = time.monotonic
+        t0 = now() + 0.01
+        # six on the grid, a skip of three periods, four more on the new grid
+        deadlines = [t0 + k * period for k in range(6)] + [t0 + k * period for k in range(9, 13)]
+        called: list[float] = []
+        states: list[tuple[int, int]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def job() -> float | None:
+            called.append(now())
+            states.append(_timerfd_state(tfd.fd))
+            if len(called) == len(deadlines):
+                done.set_result(None)
+                return None
+            return deadlines[len(called)]
+
+        waiter.call_at(deadlines[0], job, period=period)
+        await asyncio.wait_for(done, 5)
+        await asyncio.sleep(3 * period)  # a timer left running would fire here
+        after = _timerfd_state(tfd.fd)
+        waiter.close()
+        return called, deadlines, armed, states, after
+
+    called, deadlines, armed, states, after = run_on(loop_factory, main())
+    assert len(called) == len(deadlines)
+    for t, deadline in zip(called, deadlines, strict=True):
+        assert deadline <= t < deadline + GENEROUS_S
+    # armed for the first deadline and again for the skip, unless the machine stalled past a deadline (then
+    # the grid is armed afresh for the next one): never once per deadline
+    assert 2 <= len(armed) < len(deadlines) // 2 + 2
+    assert armed[0] >= deadlines[0] * 1e9
+    assert all(interval == round(period * 1e9) + 1 for _, interval in states[:-1])  # periodic throughout
+    assert after == (0, 0)  # the series ended: disarmed
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_call_at_with_a_period_follows_a_callback_that_raises_and_stops_its_timer(loop_factory):
+    async def main() -> tuple[int, tuple[int, int], BaseException | None]:
+        loop = asyncio.get_running_loop()
+        caught: list[BaseException] = []
+        loop.set_exception_handler(lambda _loop, ctx: caught.append(ctx.get("exception")))
+        waiter = DeadlineWaiter()
+        calls = 0
+
+        def job() -> float | None:
+            nonlocal calls
+            calls += 1
+            raise RuntimeError("part failed")
+
+        waiter.call_at(time.monotonic() + 0.005, job, period=0.005)
+        await asyncio.sleep(0.1)  # about 20 periods: a timer left running wakes the loop, but calls nothing
+        state = _timerfd_state(waiter._tfd.fd)  # type: ignore[union-attr]
+        waiter.close()
+        return calls, state, caught[0] if caught else None
+
+    calls, state, error = run_on(loop_factory, main())
+    assert calls == 1
+    assert state == (0, 0)  # stopped at its next wake-up
+    assert isinstance(error, RuntimeError)
+
+
+def test_call_at_period_must_be_positive():
+    async def main() -> None:
+        with DeadlineWaiter() as waiter:
+            for bad in (0.0, -0.01, float("nan"), float("inf")):
+                with pytest.raises(ValueError, match="period must be a positive number"):
+                    waiter.call_at(time.monotonic() + 1, lambda: None, period=bad)
+
+    run_on(uvloop.new_event_loop, main())
+
+
+def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback():
+    """``early=True``: the callback runs when the early timer wakes (the spin window before the deadline) and
+    spins the rest itself; without it the waiter spins and the callback never runs before its deadline."""
+
+    async def main() -> tuple[list[float], list[float], float]:
+        waiter = DeadlineWaiter(precise=True)
+        now = time.monotonic
+        t0 = now() + 0.01
+        deadlines = [t0 + k * 0.003 for k in range(clock._LATE_WARMUP + 40)]
+        entered: list[float] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def job() -> float | None:
+            entered.append(now())
+            deadline = deadlines[len(entered) - 1]
+            while now() < deadline:  # the callback's own spin
+                pass
+            if len(entered) == len(deadlines):
+                done.set_result(None)
+                return None
+            return deadlines[len(entered)]
+
+        waiter.call_at(deadlines[0], job, early=True)
+        await asyncio.wait_for(done, 10)
+        window = waiter.spin_window_s
+        waiter.close()
+        return entered, deadlines, window
+
+    entered, deadlines, window = run_on(uvloop.new_event_loop, main())
+    early = [d - t for t, d in zip(entered, deadlines, strict=True)]
+    assert max(early) > 0  # some calls came before their deadline: the waiter did not spin for them
+    assert all(e <= clock._WINDOW_CEIL_S + 1e-4 for e in early)  # never before the armed (early) target
+    assert window <= clock._WINDOW_CEIL_S

@@ -350,13 +350,12 @@ class DeadlineWaiter:
                 self._arm(target, t)
                 return
             self._call = None
-            if self.precise:
+            if self.precise and not self._call_early:  # (an early callback reports its arrival: arrived())
                 self._learn(t - target)
-                if not self._call_early:
-                    deadline = self._call_deadline
-                    now = self._now
-                    while t < deadline:  # the last stretch is spun on the clock
-                        t = now()
+                deadline = self._call_deadline
+                now = self._now
+                while t < deadline:  # the last stretch is spun on the clock
+                    t = now()
             # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series,
             # the next readiness finds nothing pending and consumes the expiry then.
             deadline = callback()
@@ -500,7 +499,8 @@ class DeadlineWaiter:
         drops it.
 
         ``early=True``: in precise mode, call back as soon as the early timer wakes, up to the spin window
-        before the deadline, and leave the last stretch to the callback (``while now() < deadline``). A callback
+        before the deadline, and leave the last stretch to the callback (``while now() < deadline``), which
+        reports its first clock read with :meth:`arrived`. A callback
         that spins itself starts its work on the instruction after the spin; when the waiter spins instead, the
         call into the callback comes after the deadline, and on a small board that call, on caches gone cold
         over the period, takes tens of microseconds. Without precise mode it changes nothing.
@@ -543,6 +543,14 @@ class DeadlineWaiter:
             self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
             return
         self._arm(target, self._now())
+
+    def arrived(self, t: float) -> None:
+        """From a precise-mode ``call_at(early=True)`` callback: the time it first read the clock. The spin window
+        is learned from it rather than from the timer's own wake-up, so it also covers the way from the timer
+        into the callback, which on caches gone cold over a long period is tens of microseconds. A no-op
+        otherwise (a task's wait_until learns by itself)."""
+        if self.precise and self._call_early:
+            self._learn(t - self._call_target)
 
     def cancel_call(self) -> None:
         """Drop the pending :meth:`call_at` callback, if any (idempotent)."""

@@ -308,6 +308,7 @@ class Drive:
         stop_at = math.inf if max_loop_count is None else max_loop_count
         loops = self.loops
         precise = self.waiter.precise  # never on the virtual clock, whose time stands still during a tick
+        arrived = self.waiter.arrived
         while not self.stop_requested:
             if loops >= stop_at:
                 self.stop_reason = self.stop_reason or "max_loop_count"
@@ -321,6 +322,7 @@ class Drive:
                     return
                 start = now()
                 if precise:  # precise mode calls back early: the last stretch is spun here
+                    arrived(start)  # (the spin window is learned from when the tick got here)
                     while start < deadline:
                         start = now()
             else:

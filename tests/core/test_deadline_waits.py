@@ -624,9 +624,11 @@ def test_call_at_period_must_be_positive():
     run_on(uvloop.new_event_loop, main())
 
 
-def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback():
+def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypatch):
     """``early=True``: the callback runs when the early timer wakes (the spin window before the deadline) and
     spins the rest itself; without it the waiter spins and the callback never runs before its deadline."""
+
+    monkeypatch.setattr(clock, "_learned_window_s", None)  # start from the guess, so learning shows
 
     async def main() -> tuple[list[float], list[float], float]:
         waiter = DeadlineWaiter(precise=True)
@@ -638,6 +640,7 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback():
 
         def job() -> float | None:
             entered.append(now())
+            waiter.arrived(entered[-1])  # the window is learned from when the callback got here
             deadline = deadlines[len(entered) - 1]
             while now() < deadline:  # the callback's own spin
                 pass
@@ -657,3 +660,4 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback():
     assert max(early) > 0  # some calls came before their deadline: the waiter did not spin for them
     assert all(e <= clock._WINDOW_CEIL_S + 1e-4 for e in early)  # never before the armed (early) target
     assert window <= clock._WINDOW_CEIL_S
+    assert window != clock._WINDOW_START_S or window == clock._WINDOW_CEIL_S  # learned from the arrivals

@@ -26,7 +26,7 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
   ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
   is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the
-  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 10 µs), so that 99 % of the
+  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
@@ -123,8 +123,10 @@ _LATE_QUANTILE = 0.99  # the ticks precise mode keeps within its tolerance
 _LATE_REFRESH = 32  # recompute the window every this many samples
 _LATE_WARMUP = 64  # waits with the start window before the first estimate (a few early samples mislead)
 #: The lateness precise mode accepts at that quantile: the window is the quantile less this. Spinning the
-#: last few microseconds too would cost CPU on every tick for nothing a car can notice.
-PRECISE_TOLERANCE_S = 10e-6
+#: last few microseconds too would cost CPU on every tick for nothing a car can notice: every microsecond
+#: taken off the window is a microsecond less spin per tick (at 100 Hz, 20 µs is 0.2 % of a core, about 40 %
+#: of what Donkeycar's whole loop costs there), while a servo pulse is refreshed only every 16-20 ms.
+PRECISE_TOLERANCE_S = 20e-6
 _WINDOW_FLOOR_S = 5e-6  # the window is at least this (the spin's own check-to-start cost) ...
 #: ... and at most this: measured on a busy 2-core VM, spinning longer than about half a millisecond made the
 #: next wake-ups *later* (the scheduler's fairness counts the spin against the task), so the window grew, and

@@ -363,23 +363,20 @@ class DeadlineWaiter:
             deadline = callback()
             if deadline is not None and self._call is None:
                 arm = self._fast_arm
-                if arm is None:
-                    self._pend(callback, deadline)
-                    return
-                # _pend's timerfd case without precise mode, written out: this runs once per period
-                self._call = callback
-                self._call_deadline = self._call_target = deadline
-                self.waits += 1
-                ns = ceil(deadline * 1e9)
-                if interval:
+                if arm is not None:
+                    ns = ceil(deadline * 1e9)
                     grid = self._grid_ns + interval
-                    if 0 <= grid - ns <= _GRID_SLACK_NS:  # on the grid: the timer is already armed for it
-                        self._grid_ns = grid
+                    if not interval or 0 <= grid - ns <= _GRID_SLACK_NS:
+                        # _pend's timerfd case without precise mode, written out: this runs once per period
+                        self._call = callback
+                        self._call_deadline = self._call_target = deadline
+                        self.waits += 1
+                        if interval:
+                            self._grid_ns = grid  # on the grid: the timer is already armed for it
+                        else:
+                            arm(ns)
                         return
-                    self._grid_ns = ns
-                    self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
-                    return
-                arm(ns)
+                self._pend(callback, deadline)  # precise mode, the loop's timers, or a periodic timer's new grid
             elif interval and self._call is None:  # the series ended: stop the periodic timer
                 self._end_periodic()
             return

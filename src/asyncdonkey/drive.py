@@ -290,6 +290,7 @@ class Drive:
         buf = table.buf
         window = table.window
         ncol = table.ncol
+        commit = table.commit
         block_report_s = self.block_report_s
         part_failed = self._part_failed
         report_block = self._report_block
@@ -299,11 +300,6 @@ class Drive:
         self.first_start = self.last_start = self.last_end = t0
         sched = Schedule(rate_hz, t0)
         period = sched.period
-        # Schedule's on-time step, written out below (Schedule.advance takes the rest): deadline k is t0 + k / rate
-        k, rate = sched.k, sched.rate_hz
-        behind = period + _TIME_EPS  # Schedule.advance's test for "more than a period behind"
-        deadline = sched.deadline
-        fold = table.fold_rows
         end_at = math.inf if duration is None else t0 + duration
         stop_at = math.inf if max_loop_count is None else max_loop_count
         loops = self.loops
@@ -313,6 +309,7 @@ class Drive:
             if loops >= stop_at:
                 self.stop_reason = self.stop_reason or "max_loop_count"
                 return
+            deadline = sched.deadline
             if deadline >= end_at:
                 self.stop_reason = self.stop_reason or "duration"
                 return
@@ -390,24 +387,18 @@ class Drive:
 
             self.last_end = end = now()
             buf[pos] = end
-            self.loops = table.rows = loops = loops + 1  # TickTable.commit, written out
-            if not loops % fold:
-                table.fold()
-            if end - start > behind:
+            commit()
+            self.loops = loops = loops + 1
+            over = end - start - period
+            if over > _TIME_EPS:
                 self.overruns += 1
                 more = jitter_log.ready("jitter", end) if verbose else None
                 if more is not None:
-                    over = end - start - period
                     logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
             if verbose and report_every and loops % report_every == 0:
                 logger.info("%s", profiler.table())
-            k += 1
-            deadline = t0 + k / rate
-            if end - deadline > behind:
-                # more than a period behind: the missed deadlines are skipped and counted, never burst
-                sched.k = k - 1
-                self.skipped += sched.advance(end)
-                k, deadline = sched.k, sched.deadline
+            # more than a period behind: the missed deadlines are skipped and counted, never burst
+            self.skipped += sched.advance(end)
 
     async def _drive_from_timer(self, ticks: Generator[Any, Any, None], period: float) -> None:
         """Every tick runs from the deadline timer's callback; this task only waits for the drive to end.

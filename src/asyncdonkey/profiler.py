@@ -176,8 +176,8 @@ class TickTable:
         return (tick % self.window) * self.ncol
 
     def commit(self) -> None:
-        """The row of tick number ``rows`` is complete. (The drive's tick does this inline: it counts
-        :attr:`rows` and calls :meth:`fold` every :attr:`fold_rows` rows.)"""
+        """The row of tick number ``rows`` is complete (every :attr:`fold_rows` rows, :meth:`fold` keeps the
+        extremes of the rows about to be overwritten)."""
         rows = self.rows = self.rows + 1
         if rows % self.fold_rows == 0:
             self.fold()

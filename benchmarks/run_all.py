@@ -265,27 +265,16 @@ def web_rows(d: dict[str, Any]) -> list[Row]:
 
 def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
     ticks = f"{d.get('ticks', 10_000):,} ticks"
-    return [
-        ("virtual clock", f"{ticks} of a 10-part 20 Hz car (s)", _fmt(d.get("car_s"), 3), "", ""),
-        ("virtual clock", f"{ticks}, the loop alone: a task awaiting a timer (s)", _fmt(d.get("loop_s"), 3), "", ""),
-        ("virtual clock", f"{ticks}, the loop alone: asyncio.sleep (s)", _fmt(d.get("sleep_loop_s"), 3), "", ""),
-        ("virtual clock", f"{ticks}, the loop alone: call_at chain (s)", _fmt(d.get("call_at_chain_s"), 3), "", ""),
-        (
-            "virtual clock",
-            f"{ticks}, the loop alone: a timer queueing a callback (s)",
-            _fmt(d.get("timer_call_soon_chain_s"), 3),
-            "",
-            "",
-        ),
-        ("virtual clock", f"{ticks}, plain asyncio without timers (s)", _fmt(d.get("plain_asyncio_s"), 3), "", ""),
-        (
-            "virtual clock",
-            f"{ticks}, plain asyncio call_soon chain (s)",
-            _fmt(d.get("plain_call_soon_chain_s"), 3),
-            "",
-            "",
-        ),
-    ]
+    figures = (
+        (" of a 10-part 20 Hz car", "car_s"),
+        (", the loop alone: a task awaiting a timer", "loop_s"),
+        (", the loop alone: asyncio.sleep", "sleep_loop_s"),
+        (", the loop alone: call_at chain", "call_at_chain_s"),
+        (", the loop alone: a timer queueing a callback", "timer_call_soon_chain_s"),
+        (", plain asyncio without timers", "plain_asyncio_s"),
+        (", plain asyncio call_soon chain", "plain_call_soon_chain_s"),
+    )
+    return [("virtual clock", f"{ticks}{what} (s)", _fmt(d.get(key), 3), "", "") for what, key in figures]
 
 
 def zenoh_rows(d: dict[str, Any]) -> list[Row]:

@@ -30,7 +30,9 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
-  preemption on a loaded machine cannot be spun away, only paid for.
+  preemption on a loaded machine cannot be spun away, only paid for. A timer wakes later after a long sleep
+  than after a short one, so what is learned is kept per octave of the period: a new waiter starts from the
+  window last learned at its own rate.
 
 Wall-clock time (``time.time()``) is used only where a human or a file needs it, e.g. ``_timestamp_ms`` in
 recorded records.
@@ -139,6 +141,18 @@ _WINDOW_START_S = 0.5e-3  # until the first samples are in, when no precise wait
 #: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
 #: waiter starts from instead of the half-millisecond guess (a drive restarted, a second periodic task).
 _learned_window_s: float | None = None
+#: The window last learned for each *period class* (:func:`_period_class`): how late a timer wakes depends on
+#: how long the machine slept before it. Measured on a 2-core VM, a timerfd woke about 85 µs late at the median
+#: and 180 µs at the 99th percentile after 50 ms of sleep (20 Hz), against 55 and 65 µs after 10 ms (100 Hz).
+#: A waiter starting at a period this process has learned starts from that period's window, and keeps it until
+#: its own samples are in; a 20 Hz drive restarted after a 100 Hz one does not spin for 100 Hz's latency.
+_learned_windows: dict[int, float] = {}
+
+
+def _period_class(gap_s: float) -> int:
+    """The octave of the time between two deadlines, in microseconds (20 Hz and 100 Hz differ, 20 and 25 Hz
+    do not): the key of :data:`_learned_windows`."""
+    return int(gap_s * 1e6).bit_length()
 
 #: How far a periodic timer's grid (``call_at(period=...)``) may fall behind the deadlines it stands for before it
 #: is armed again on a new grid: it drifts by at most a nanosecond a period (see :meth:`DeadlineWaiter.call_at`).
@@ -264,6 +278,7 @@ class DeadlineWaiter:
         "_now",
         "_on_loop_timer_cb",
         "_on_wake_cb",
+        "_period_class",
         "_refresh_due",
         "_tfd",
         "_timer_slop",
@@ -306,6 +321,7 @@ class DeadlineWaiter:
         self._late_n = 0
         self._refresh_due = False
         self._last_deadline = math.inf
+        self._period_class = 0  # of the time between this waiter's deadlines: not known yet
         #: Waits that actually slept (the deadline had not passed yet).
         self.waits = 0
         # uvloop's timers count whole milliseconds of a clock cached at the start of each loop pass: arm them
@@ -520,6 +536,8 @@ class DeadlineWaiter:
         # one nanosecond over the period: the grid then never falls before the deadlines it stands for (their
         # own nanoseconds round up), and drifts past them by at most a nanosecond a period, until re-armed
         self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._fast_arm is not None else 0
+        if period is not None and self.precise:  # the first wait already starts from this period's window
+            self._enter_period_class(_period_class(period))
         self._pend(callback, deadline)
 
     def _pend(self, callback: Callable[[], float | None], deadline: float) -> None:
@@ -582,6 +600,8 @@ class DeadlineWaiter:
         if self._refresh_due:
             self._refresh_window()
         gap, self._last_deadline = deadline - self._last_deadline, deadline
+        if gap > 0:
+            self._enter_period_class(_period_class(gap))
         window = self.spin_window_s
         if gap > 0 and window > gap * SPIN_BUDGET:
             window = gap * SPIN_BUDGET
@@ -623,6 +643,18 @@ class DeadlineWaiter:
         if n % _LATE_REFRESH == 0 and n >= _LATE_WARMUP:
             self._refresh_due = True
 
+    def _enter_period_class(self, cls: int) -> None:
+        """The time between deadlines is in period class ``cls``: until this waiter has learned a window of its
+        own, start from the one last learned for that class, if any. A waiter that has learned keeps its own
+        samples whatever its deadlines do (irregular waits change class from one wait to the next)."""
+        if cls == self._period_class:
+            return
+        self._period_class = cls
+        if self._late_n < _LATE_WARMUP:
+            learned = _learned_windows.get(cls)
+            if learned is not None:
+                self.spin_window_s = learned
+
     def _refresh_window(self) -> None:
         """Set the spin window to the high quantile of the recent lateness, less the tolerance."""
         self._refresh_due = False
@@ -631,6 +663,8 @@ class DeadlineWaiter:
         q = heapq.nlargest(rank, samples)[-1]
         global _learned_window_s
         self.spin_window_s = _learned_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
+        if self._period_class:
+            _learned_windows[self._period_class] = _learned_window_s
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

@@ -523,6 +523,62 @@ def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
     assert start == learned  # the machine's wake-up latency, not the half-millisecond guess
 
 
+def test_a_precise_waiter_starts_from_the_window_learned_at_its_own_period(monkeypatch):
+    """Wake-up latency depends on how long the machine slept: the window is kept per period class, and a new
+    waiter starts from its own rate's, not from whatever rate learned last."""
+    monkeypatch.setattr(clock, "_learned_windows", {})
+    monkeypatch.setattr(clock, "_learned_window_s", None)
+
+    async def learn(spacing_s: float) -> float:
+        with DeadlineWaiter(precise=True) as waiter:
+            await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, spacing_s)
+            return waiter.spin_window_s
+
+    async def started_at(period: float) -> float:
+        with DeadlineWaiter(precise=True) as waiter:
+            waiter.call_at(time.monotonic() + 60, lambda: None, period=period)  # never due: only arms
+            window = waiter.spin_window_s
+            waiter.cancel_call()
+            return window
+
+    async def main() -> None:
+        await learn(0.006)  # deadlines about 6 ms apart, then about 1 ms apart
+        fast = await learn(0.0011)
+        slow_class, fast_class = clock._period_class(0.006), clock._period_class(0.0011)
+        assert slow_class != fast_class
+        # what each rate learned is kept under its class (the odd offsets of the waits move some gaps a class
+        # down; a refresh is stored under the class of the gap it came at)
+        assert slow_class in clock._learned_windows
+        assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
+        # pretend the two rates learned different windows, so which one a new waiter picks shows
+        clock._learned_windows[slow_class] = 0.000_123
+        clock._learned_windows[fast_class] = 0.000_045
+        assert await started_at(0.006) == 0.000_123
+        assert await started_at(0.0011) == 0.000_045
+        unknown = clock._period_class(0.5)
+        assert unknown not in clock._learned_windows
+        assert await started_at(0.5) == fast  # no window for that rate: the last one learned anywhere
+
+    run_on(uvloop.new_event_loop, main())
+
+
+def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
+    monkeypatch.setattr(clock, "_learned_windows", {})
+
+    async def main() -> tuple[float, float]:
+        with DeadlineWaiter(precise=True) as waiter:
+            await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, 0.0021)
+            own = waiter.spin_window_s
+            clock._learned_windows[clock._period_class(0.04)] = own + 0.000_1  # another rate's
+            t = time.monotonic()
+            for k in (1, 2):  # two deadlines 40 ms apart: a new class
+                await waiter.wait_until(t + 0.04 * k)
+            return own, waiter.spin_window_s
+
+    own, after = run_on(uvloop.new_event_loop, main())
+    assert after == own
+
+
 # ------------------------------------------------------------------------------------ periodic timerfd
 def _timerfd_state(fd: int) -> tuple[int, int]:
     """What the kernel holds for a timerfd (``timerfd_gettime``): nanoseconds to its next expiry (0: disarmed)

@@ -392,7 +392,19 @@ class DeadlineWaiter:
                         else:
                             arm(ns)
                         return
-                self._pend(callback, deadline)  # precise mode, the loop's timers, or a periodic timer's new grid
+                elif interval:  # precise mode on a periodic timer: its grid is the deadlines less the window
+                    target = self._target(deadline)
+                    grid = self._grid_ns + interval
+                    if 0 <= grid - ceil(target * 1e9) <= _GRID_SLACK_NS:
+                        self._call = callback
+                        self._call_deadline = deadline
+                        self._call_target = target
+                        self.waits += 1
+                        self._grid_ns = grid
+                        return
+                    self._pend(callback, deadline, target)  # a new window, or a deadline off the grid
+                    return
+                self._pend(callback, deadline)  # the loop's timers, precise one-shots, or a periodic timer's new grid
             elif interval and self._call is None:  # the series ended: stop the periodic timer
                 self._end_periodic()
             return
@@ -524,8 +536,9 @@ class DeadlineWaiter:
         On a timerfd outside precise mode the timer is then armed periodic, on a grid of whole nanoseconds
         never before the deadlines: a deadline on the grid re-arms nothing, the kernel moves the timer on by
         itself; any other deadline (a skip after an overrun, a grid drifted more than
-        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. Precise mode arms each wait
-        afresh (its window moves as it learns).
+        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. In precise mode the grid is the
+        deadlines less the spin window, armed afresh when the window moves (at most once every
+        ``_LATE_REFRESH`` waits, when it learns).
         """
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
@@ -535,14 +548,14 @@ class DeadlineWaiter:
             raise ValueError(f"DeadlineWaiter.call_at: period must be a positive number of seconds, got {period!r}")
         # one nanosecond over the period: the grid then never falls before the deadlines it stands for (their
         # own nanoseconds round up), and drifts past them by at most a nanosecond a period, until re-armed
-        self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._fast_arm is not None else 0
+        self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._tfd is not None else 0
         if period is not None and self.precise:  # the first wait already starts from this period's window
             self._enter_period_class(_period_class(period))
         self._pend(callback, deadline)
 
-    def _pend(self, callback: Callable[[], float | None], deadline: float) -> None:
+    def _pend(self, callback: Callable[[], float | None], deadline: float, target: float | None = None) -> None:
         """Make ``callback`` the pending call at ``deadline`` and arm for it (from :meth:`call_at`, and again
-        after each call that returned its next deadline)."""
+        after each call that returned its next deadline); ``target``: when to arm, if already worked out."""
         self._call = callback
         self._call_deadline = deadline
         if self.mode == "virtual":
@@ -552,7 +565,7 @@ class DeadlineWaiter:
             loop = self._loop
             self._handle = loop.call_at(deadline, loop.call_soon, self._virtual_fire)
             return
-        target = self._call_target = self._target(deadline)
+        target = self._call_target = self._target(deadline) if target is None else target
         self.waits += 1
         interval = self._interval_ns
         if interval:

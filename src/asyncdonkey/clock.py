@@ -750,6 +750,11 @@ def get_clock(loop: asyncio.AbstractEventLoop | None = None) -> Clock:
         loop = asyncio.get_running_loop()
     clock = _CLOCKS.get(loop)
     if clock is None:
+        # A clock holds its loop (its ``now`` is the virtual loop's ``time``), so the weak keys alone never let
+        # a loop go: the clocks of closed loops are dropped whenever a new loop's is made. A program that runs
+        # one loop after another (a test suite, a benchmark) keeps only the loops still open.
+        for old in [key for key in _CLOCKS if key.is_closed()]:
+            del _CLOCKS[old]
         clock = _CLOCKS[loop] = Clock(loop)
     return clock
 

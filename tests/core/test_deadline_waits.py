@@ -20,7 +20,8 @@ import pytest
 import uvloop
 
 from asyncdonkey import Poller, Vehicle, _timerfd, clock
-from asyncdonkey.clock import DeadlineWaiter, get_clock
+from asyncdonkey.clock import Clock, DeadlineWaiter, get_clock
+from asyncdonkey.virtual_loop import VirtualClockLoop
 
 LOOPS = [
     pytest.param(asyncio.SelectorEventLoop, id="asyncio"),
@@ -719,3 +720,27 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypat
     assert all(e <= clock._WINDOW_CEIL_S + 1e-4 for e in early)  # never before the armed (early) target
     assert window <= clock._WINDOW_CEIL_S
     assert window != clock._WINDOW_START_S or window == clock._WINDOW_CEIL_S  # learned from the arrivals
+
+
+@pytest.mark.parametrize("loop_factory", [asyncio.new_event_loop, uvloop.new_event_loop, VirtualClockLoop])
+def test_the_clock_cache_lets_closed_loops_go(loop_factory):
+    """A loop's clock holds the loop; the cache drops the clocks of closed loops, so a program that runs loop
+    after loop (a test suite, a benchmark's segments) does not keep every loop it ever ran."""
+    import weakref
+
+    async def ask() -> Clock:
+        return get_clock()
+
+    first = loop_factory()
+    clock = first.run_until_complete(ask())
+    assert first.run_until_complete(ask()) is clock  # cached while the loop lives
+    first.close()
+    gone = weakref.ref(first)
+    del first, clock
+    later = loop_factory()
+    later.run_until_complete(ask())  # a new loop's clock: the closed loop's is dropped
+    gc.collect()
+    try:
+        assert gone() is None, "the closed loop is still held"
+    finally:
+        later.close()

@@ -154,6 +154,7 @@ def _period_class(gap_s: float) -> int:
     do not): the key of :data:`_learned_windows`."""
     return int(gap_s * 1e6).bit_length()
 
+
 #: How far a periodic timer's grid (``call_at(period=...)``) may fall behind the deadlines it stands for before it
 #: is armed again on a new grid: it drifts by at most a nanosecond a period (see :meth:`DeadlineWaiter.call_at`).
 _GRID_SLACK_NS = 2_000

@@ -9,6 +9,8 @@ import json
 import logging
 import os
 import stat
+import time
+from collections.abc import Callable
 
 import pytest
 from zenoh_loopback import free_port, until
@@ -19,6 +21,21 @@ from asyncdonkey.parts.zenoh.link import exposure
 from asyncdonkey.parts.zenoh.pairing import make_pair
 
 CMD = ["pilot/angle", "pilot/throttle"]
+
+
+async def _settled(read: Callable[[], int], quiet_s: float = 0.2, timeout_s: float = 5.0) -> int:
+    """``read()`` once it has not changed for ``quiet_s`` (puts still in flight land first, however loaded the
+    machine is)."""
+    value, since = read(), time.monotonic()
+    end = since + timeout_s
+    while time.monotonic() < end:
+        await asyncio.sleep(0.02)
+        now_value = read()
+        if now_value != value:
+            value, since = now_value, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return value
+    raise AssertionError(f"still changing after {timeout_s} s: {value}")
 
 
 def _json5(path):
@@ -70,8 +87,7 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
         assert await until(lambda: (pilot_pub.run(0.1, 0.4, 0, 0), sub.received >= 2)[1])
         assert sub.run() == (0.1, 0.4)
         assert await until(lambda: car.pongs_received > 0)
-        await asyncio.sleep(0.2)  # the pilot's last puts have landed
-        received = sub.received
+        received = await _settled(lambda: sub.received)  # the pilot's last puts have landed
         # everyone else tries for half a second: full throttle, hard left
         for _ in range(25):
             for pub in (view_pub, impostor_pub, plain_pub):

@@ -167,6 +167,7 @@ class Segment:
     lateness_s: np.ndarray
     long_run: bool = False
     skipped_deadlines: int = 0
+    spin_window_ms: float | None = None  # precise mode's learned window at the segment's end
 
     @classmethod
     def from_stamp(cls, stamp: Stamp, lateness_s: np.ndarray, **kw) -> Segment:
@@ -213,7 +214,9 @@ def ours_segment(rate_hz: float, ticks: int, use_uvloop: bool, precise: bool = F
     # Lateness against each tick's own deadline, as the loop measures it: when a stall made the loop skip a
     # deadline, the ticks after it are due one period later, not "late by a period" from then on.
     late = v.profiler.lateness.recent(drop_last=False)
-    return Segment.from_stamp(stamp, late, skipped_deadlines=report.skipped_deadlines)
+    return Segment.from_stamp(
+        stamp, late, skipped_deadlines=report.skipped_deadlines, spin_window_ms=report.spin_window_ms
+    )
 
 
 def donkey_segment(rate_hz: float, ticks: int, poller: bool = True) -> Segment:
@@ -343,7 +346,15 @@ def figures(cfg: Config, segs: list[Segment]) -> dict:
         "cpu_us_per_tick_min": per_tick["min"],
         "cpu_us_per_tick_max": per_tick["max"],
         "cpu_us_per_tick_rounds": per_tick["rounds"],
+        **_spin_window(segs),
     }
+
+
+def _spin_window(segs: list[Segment]) -> dict:
+    """Precise mode's learned spin window (ms), median over the segments: what each tick spun at most, and so
+    most of what precise mode costs over the default; it follows the machine's wake-up lateness."""
+    windows = [s.spin_window_ms for s in segs if s.spin_window_ms is not None]
+    return {"spin_window_ms": statistics.median(windows), "spin_window_ms_rounds": windows} if windows else {}
 
 
 def _p99_per_round(cfg: Config, segs: list[Segment]) -> dict:
@@ -492,7 +503,12 @@ def table(results: dict) -> str:
                 f"{rate} Hz: Donkeycar's rate error is {ratio:,.0f}x ours"
                 f" ({dk['rate_error_ppm']:+,.0f} vs {ours['rate_error_ppm']:+,.1f} ppm);"
                 f" CPU ours/Donkeycar {ours['cpu_ratio']:.2f}"
-                + (f", precise {row['ours_precise']['cpu_ratio']:.2f}" if "ours_precise" in row else "")
+                + (
+                    f", precise {row['ours_precise']['cpu_ratio']:.2f}"
+                    f" (spin window {row['ours_precise']['spin_window_ms']:.3f} ms)"
+                    if "ours_precise" in row
+                    else ""
+                )
                 + f"; per tick {ours['cpu_us_per_tick']:.0f} µs vs {dk['cpu_us_per_tick']:.0f},"
                 f" floor {row['floor']['cpu_us_per_tick']:.0f}"
             )

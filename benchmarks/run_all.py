@@ -147,7 +147,9 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
         if precise:
             o = precise.get("lateness_p99_ms")
             rows.append((name, "precise: tick lateness p99 (ms)", _late_cell(precise), _fmt(t, 3), _ratio(o, t)))
-            rows.append((name, f"precise: CPU (% of a core{over})", *_cpu_cells(precise, dk)))
+            spin = precise.get("spin_window_ms")
+            spun = f"; spin window {_fmt(spin, 3)} ms" if spin is not None else ""
+            rows.append((name, f"precise: CPU (% of a core{over}{spun})", *_cpu_cells(precise, dk)))
     idle = d.get("idle") or {}
     ours, dk, floor = idle.get("ours"), idle.get("donkeycar") or {}, idle.get("floor") or {}
     name = f"loop {_get(d, 'method', 'idle_hz') or 20} Hz, no poller"

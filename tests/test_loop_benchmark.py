@@ -98,6 +98,12 @@ def test_run_all_builds_the_readme_rows(figures: dict) -> None:
     assert late[0] == f"{ours['lateness_p99_ms']:.3f} (per-round median {ours['lateness_p99_ms_median_of_rounds']:.3f})"
     floor = figures["idle"]["floor"]["cpu_us_per_tick"]
     assert ("loop 20 Hz, no poller", f"idle CPU per tick (µs; bare time.sleep loop {floor:.0f})") in by_figure
+    # precise mode's CPU row names the spin window it learned (the default mode has none)
+    precise = figures["rates"]["100"]["ours_precise"]
+    assert len(precise["spin_window_ms_rounds"]) == ROUNDS and "spin_window_ms" not in figures["rates"]["100"]["ours"]
+    window = f"spin window {precise['spin_window_ms']:.3f} ms"
+    spun = f"precise: CPU (% of a core; median (min-max) of {ROUNDS} rounds; {window})"
+    assert by_figure[("loop 100 Hz", spun)][0].startswith(f"{precise['cpu_pct']:.2f} (")
     table = run_all.markdown(rows, "test machine", "today", quick=True)
     assert table.count("| loop") == len(rows)
 

@@ -508,6 +508,7 @@ class Drive:
         r.shutdown_abandoned = list(self.abandoned)
         r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
+        r.spin_window_ms = self.waiter.spin_window_s * 1e3 if self.waiter.precise else None
 
 
 def latency_recorder(profiler: Profiler, name: str) -> Callable[[float, float], None]:

@@ -73,6 +73,8 @@ class DriveReport:
             requests replaced by a newer one while it was busy: frames it never saw).
         stop_reason: ``"max_loop_count"``, ``"duration"``, ``"stop()"``, ``"cancelled"``, ``"error"`` or the
             name of the signal that stopped the car.
+        spin_window_ms: in precise mode, the spin window at the end of the drive (learned from the machine's
+            wake-up lateness: what each tick spun at most), else ``None``. Precise mode's CPU is mostly this.
     """
 
     loops: int = 0
@@ -91,6 +93,7 @@ class DriveReport:
     shutdown_abandoned: list[str] = field(default_factory=list)
     pipelined: dict[str, dict[str, float]] = field(default_factory=dict)
     stop_reason: str = ""
+    spin_window_ms: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -379,6 +382,8 @@ class Vehicle:
             ("overruns", str(report.overruns)),
             ("skipped deadlines", str(report.skipped_deadlines)),
         ]
+        if report.spin_window_ms is not None:
+            rows.append(("precise spin window", f"{report.spin_window_ms:.3f} ms (learned)"))
         for name, lat in report.latency_ms.items():
             rows.append(
                 (

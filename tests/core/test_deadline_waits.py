@@ -256,6 +256,14 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
     assert report.loops == 60 and len(stamps) == 60
     assert report.lateness_ms["min"] >= 0.0  # no tick started before its deadline
     assert report.lateness_ms["50%"] < 50.0
+    # what precise mode spun at most per tick is in the report, learned within its bounds
+    assert report.spin_window_ms is not None
+    assert clock._WINDOW_FLOOR_S * 1e3 <= report.spin_window_ms <= clock._WINDOW_CEIL_S * 1e3
+    assert "precise spin window" in v.format_report(report)
+    plain = Vehicle()
+    plain.add(Stamp())
+    report = asyncio.run(plain.run(rate_hz=200, max_loop_count=5))
+    assert report.spin_window_ms is None and "precise spin window" not in plain.format_report(report)
 
 
 @pytest.mark.asyncio
@@ -269,9 +277,10 @@ async def test_precise_mode_on_the_virtual_clock_is_the_exact_timer():
             times.append(asyncio.get_running_loop().time())
 
     v.add(Stamp())
-    await v.run(rate_hz=50, max_loop_count=100, precise=True)
+    report = await v.run(rate_hz=50, max_loop_count=100, precise=True)
     assert times == [times[0] + k / 50 for k in range(100)]
     assert v.profiler.lateness.max == 0.0
+    assert report.spin_window_ms is None  # nothing is spun
 
 
 # ---------------------------------------------------------------------------------------------- stop()

@@ -31,8 +31,8 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
   preemption on a loaded machine cannot be spun away, only paid for. A timer wakes later after a long sleep
-  than after a short one, so what is learned is kept per octave of the period: a new waiter starts from the
-  window last learned at its own rate.
+  than after a short one, so what is learned is kept per octave of the period: a new waiter takes over the
+  samples last learned from at its own rate.
 
 Wall-clock time (``time.time()``) is used only where a human or a file needs it, e.g. ``_timestamp_ms`` in
 recorded records.
@@ -141,17 +141,19 @@ _WINDOW_START_S = 0.5e-3  # until the first samples are in, when no precise wait
 #: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
 #: waiter starts from instead of the half-millisecond guess (a drive restarted, a second periodic task).
 _learned_window_s: float | None = None
-#: The window last learned for each *period class* (:func:`_period_class`): how late a timer wakes depends on
-#: how long the machine slept before it. Measured on a 2-core VM, a timerfd woke about 85 µs late at the median
-#: and 180 µs at the 99th percentile after 50 ms of sleep (20 Hz), against 55 and 65 µs after 10 ms (100 Hz).
-#: A waiter starting at a period this process has learned starts from that period's window, and keeps it until
-#: its own samples are in; a 20 Hz drive restarted after a 100 Hz one does not spin for 100 Hz's latency.
-_learned_windows: dict[int, float] = {}
+#: The lateness samples last learned from at each *period class* (:func:`_period_class`), oldest first: how late
+#: a timer wakes depends on how long the machine slept before it. Measured on a 2-core VM, a timerfd woke about
+#: 85 µs late at the median and 180 µs at the 99th percentile after 50 ms of sleep (20 Hz), against 55 and 65 µs
+#: after 10 ms (100 Hz). A waiter starting at a period this process has learned takes over that period's samples
+#: and adds its own to them: a 20 Hz drive restarted after a 100 Hz one does not spin for 100 Hz's latency, and
+#: a drive restarted at the same rate keeps its quantile over a thousand wake-ups instead of starting again from
+#: the largest of its first few dozen (one outlier would set the window).
+_learned_lateness: dict[int, array[float]] = {}
 
 
 def _period_class(gap_s: float) -> int:
     """The octave of the time between two deadlines, in microseconds (20 Hz and 100 Hz differ, 20 and 25 Hz
-    do not): the key of :data:`_learned_windows`."""
+    do not): the key of :data:`_learned_lateness`."""
     return int(gap_s * 1e6).bit_length()
 
 
@@ -659,15 +661,19 @@ class DeadlineWaiter:
 
     def _enter_period_class(self, cls: int) -> None:
         """The time between deadlines is in period class ``cls``: until this waiter has learned a window of its
-        own, start from the one last learned for that class, if any. A waiter that has learned keeps its own
-        samples whatever its deadlines do (irregular waits change class from one wait to the next)."""
+        own, take over the samples last learned from at that class, if any, and set the window from them with
+        its own. A waiter that has learned keeps its own samples whatever its deadlines do (irregular waits
+        change class from one wait to the next)."""
         if cls == self._period_class:
             return
         self._period_class = cls
         if self._late_n < _LATE_WARMUP:
-            learned = _learned_windows.get(cls)
-            if learned is not None:
-                self.spin_window_s = learned
+            past = _learned_lateness.get(cls)
+            if past is not None:
+                own = self._late
+                self._late = samples = (past + own)[-_LATE_SAMPLES:]  # oldest first: the next one replaces [0]
+                self._late_n = len(samples)
+                self._refresh_window()
 
     def _refresh_window(self) -> None:
         """Set the spin window to the high quantile of the recent lateness, less the tolerance."""
@@ -678,7 +684,8 @@ class DeadlineWaiter:
         global _learned_window_s
         self.spin_window_s = _learned_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
         if self._period_class:
-            _learned_windows[self._period_class] = _learned_window_s
+            start = self._late_n % len(samples) if len(samples) == _LATE_SAMPLES else 0
+            _learned_lateness[self._period_class] = samples[start:] + samples[:start]  # a copy, oldest first
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

@@ -20,7 +20,7 @@ import threading
 from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
-from .clock import Clock, DeadlineWaiter, Schedule
+from .clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule
 from .errors import PartError
 from .memory import Memory
 from .pipeline import Reaction, after_store, build_pipelines
@@ -508,7 +508,9 @@ class Drive:
         r.shutdown_abandoned = list(self.abandoned)
         r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
-        r.spin_window_ms = self.waiter.spin_window_s * 1e3 if self.waiter.precise else None
+        if self.waiter.precise:  # the window as armed: at most its budget of the period
+            window = self.waiter.spin_window_s
+            r.spin_window_ms = (min(window, SPIN_BUDGET / r.rate_hz) if r.rate_hz > 0 else window) * 1e3
 
 
 def latency_recorder(profiler: Profiler, name: str) -> Callable[[float, float], None]:

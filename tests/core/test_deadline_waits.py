@@ -14,6 +14,7 @@ import os
 import statistics
 import threading
 import time
+from array import array
 from collections.abc import Awaitable, Callable
 
 import pytest
@@ -200,7 +201,8 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 
 # ---------------------------------------------------------------------------------------------- precise mode
 @pytest.mark.parametrize("loop_factory", LOOPS)
-def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode):
+def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, monkeypatch):
+    monkeypatch.setattr(clock, "_learned_lateness", {})  # its own samples only, none taken over
     spacing = 0.004
 
     async def main():
@@ -533,10 +535,10 @@ def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
     assert start == learned  # the machine's wake-up latency, not the half-millisecond guess
 
 
-def test_a_precise_waiter_starts_from_the_window_learned_at_its_own_period(monkeypatch):
-    """Wake-up latency depends on how long the machine slept: the window is kept per period class, and a new
-    waiter starts from its own rate's, not from whatever rate learned last."""
-    monkeypatch.setattr(clock, "_learned_windows", {})
+def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeypatch):
+    """Wake-up latency depends on how long the machine slept: what is learned is kept per period class, and a
+    new waiter starts from its own rate's, not from whatever rate learned last."""
+    monkeypatch.setattr(clock, "_learned_lateness", {})
     monkeypatch.setattr(clock, "_learned_window_s", None)
 
     async def learn(spacing_s: float) -> float:
@@ -544,42 +546,74 @@ def test_a_precise_waiter_starts_from_the_window_learned_at_its_own_period(monke
             await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, spacing_s)
             return waiter.spin_window_s
 
-    async def started_at(period: float) -> float:
+    async def started_at(period: float) -> tuple[float, int]:
         with DeadlineWaiter(precise=True) as waiter:
             waiter.call_at(time.monotonic() + 60, lambda: None, period=period)  # never due: only arms
-            window = waiter.spin_window_s
+            started = waiter.spin_window_s, len(waiter._late)
             waiter.cancel_call()
-            return window
+            return started
 
     async def main() -> None:
         await learn(0.006)  # deadlines about 6 ms apart, then about 1 ms apart
         fast = await learn(0.0011)
         slow_class, fast_class = clock._period_class(0.006), clock._period_class(0.0011)
         assert slow_class != fast_class
-        # what each rate learned is kept under its class (the odd offsets of the waits move some gaps a class
-        # down; a refresh is stored under the class of the gap it came at)
-        assert slow_class in clock._learned_windows
+        # what each rate learned from is kept under its class (the odd offsets of the waits move some gaps a
+        # class down; a refresh is stored under the class of the gap it came at)
+        assert len(clock._learned_lateness[slow_class]) >= clock._LATE_WARMUP
         assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
-        # pretend the two rates learned different windows, so which one a new waiter picks shows
-        clock._learned_windows[slow_class] = 0.000_123
-        clock._learned_windows[fast_class] = 0.000_045
-        assert await started_at(0.006) == 0.000_123
-        assert await started_at(0.0011) == 0.000_045
+        # pretend the two rates woke differently late, so which one a new waiter starts from shows
+        clock._learned_lateness[slow_class] = array("d", [300e-6] * 200)
+        clock._learned_lateness[fast_class] = array("d", [100e-6] * 200)
+        assert await started_at(0.006) == (pytest.approx(300e-6 - clock.PRECISE_TOLERANCE_S), 200)
+        assert await started_at(0.0011) == (pytest.approx(100e-6 - clock.PRECISE_TOLERANCE_S), 200)
         unknown = clock._period_class(0.5)
-        assert unknown not in clock._learned_windows
-        assert await started_at(0.5) == fast  # no window for that rate: the last one learned anywhere
+        assert unknown not in clock._learned_lateness
+        assert await started_at(0.5) == (clock._learned_window_s, 0)  # nothing for that rate: the last window
 
     run_on(uvloop.new_event_loop, main())
 
 
+def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(monkeypatch):
+    """A restarted drive keeps the quantile over the wake-ups before it: its first few dozen, one of them an
+    outlier, do not set the window (a fresh waiter's first estimate is the largest of them)."""
+    monkeypatch.setattr(clock, "_learned_lateness", {})
+    period = 0.01
+    cls = clock._period_class(period)
+    typical, outlier = 100e-6, 400e-6
+
+    def first_window(past: array | None) -> float:
+        if past is not None:
+            clock._learned_lateness[cls] = past
+        waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
+        try:
+            waiter._enter_period_class(cls)
+            waiter._learn(outlier)
+            for _ in range(clock._LATE_WARMUP - 1):
+                waiter._learn(typical)
+            waiter._refresh_window()
+            return waiter.spin_window_s
+        finally:
+            waiter.close()
+            waiter._loop.close()
+
+    fresh = first_window(None)
+    assert fresh == pytest.approx(outlier - clock.PRECISE_TOLERANCE_S)  # the largest of 64
+    carried = first_window(array("d", [typical] * 1000))
+    assert carried == pytest.approx(typical - clock.PRECISE_TOLERANCE_S)
+    # and what it learned is stored oldest first, its own samples last, for the next one
+    stored = clock._learned_lateness[cls]
+    assert len(stored) == clock._LATE_SAMPLES and stored[-clock._LATE_WARMUP] == outlier
+
+
 def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
-    monkeypatch.setattr(clock, "_learned_windows", {})
+    monkeypatch.setattr(clock, "_learned_lateness", {})
 
     async def main() -> tuple[float, float]:
         with DeadlineWaiter(precise=True) as waiter:
             await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, 0.0021)
             own = waiter.spin_window_s
-            clock._learned_windows[clock._period_class(0.04)] = own + 0.000_1  # another rate's
+            clock._learned_lateness[clock._period_class(0.04)] = array("d", [own + 0.000_2] * 200)  # another rate's
             t = time.monotonic()
             for k in (1, 2):  # two deadlines 40 ms apart: a new class
                 await waiter.wait_until(t + 0.04 * k)

@@ -15,7 +15,10 @@ than the differences measured, so one run per configuration says little. Here ev
 several short *segments*, interleaved in *rounds*: round after round, each rate's configurations run one after
 the other (their order rotated each round, so none always follows the same one). Per configuration the CPU is
 the median over rounds with its min-max spread, and the ratio to Donkeycar is taken per round (ours over
-Donkeycar's, run seconds apart) and its median reported: a slow minute slows both sides of a ratio.
+Donkeycar's, run seconds apart) and its median reported: a slow minute slows both sides of a ratio. Within
+one run the per-round ratios still spread from about 0.75 to 1.25 around their median, and the median of five
+moved by as much from one run to the next, so a full run takes ten rounds of one second rather than five of
+two: twice the ratios in the same time.
 
 Running the two cars *concurrently* instead, in two processes over the same wall window, was tried and not
 adopted. Over 12 rounds of 2.5 s at 20 and 100 Hz on the 2-core VM this was written on, the per-round ratio's
@@ -50,7 +53,7 @@ machine's noise only ever adds time).
 asyncdonkey runs on uvloop (as ``Vehicle.start`` does) unless ``--no-uvloop``; Donkeycar runs in the same
 process.
 
-    python benchmarks/loop.py            # 5 rounds of 2 s segments, 1,000-tick long runs (about 6 minutes)
+    python benchmarks/loop.py            # 10 rounds of 1 s segments, 1,000-tick long runs (about 6 minutes)
     python benchmarks/loop.py --quick    # 3 rounds of 0.6 s segments, 100-tick long runs (about a minute)
     python benchmarks/loop.py --json     # figures as JSON for benchmarks/run_all.py
 """
@@ -97,7 +100,7 @@ LABELS = {
     "donkeycar": donkeycar_label(),
     "floor": "floor: time.sleep thread",
 }
-FULL = {"rounds": 5, "segment_s": 2.0, "ticks": 1000, "overhead_ticks": 10_000, "overhead_repeats": 7}
+FULL = {"rounds": 10, "segment_s": 1.0, "ticks": 1000, "overhead_ticks": 10_000, "overhead_repeats": 7}
 QUICK = {"rounds": 3, "segment_s": 0.6, "ticks": 100, "overhead_ticks": 3_000, "overhead_repeats": 3}
 
 

@@ -282,6 +282,7 @@ class DeadlineWaiter:
         "_on_loop_timer_cb",
         "_on_wake_cb",
         "_period_class",
+        "_period_given",
         "_refresh_due",
         "_tfd",
         "_timer_slop",
@@ -325,6 +326,7 @@ class DeadlineWaiter:
         self._refresh_due = False
         self._last_deadline = math.inf
         self._period_class = 0  # of the time between this waiter's deadlines: not known yet
+        self._period_given = False  # by call_at(period=): then a skip's longer gap does not change the class
         #: Waits that actually slept (the deadline had not passed yet).
         self.waits = 0
         # uvloop's timers count whole milliseconds of a clock cached at the start of each loop pass: arm them
@@ -552,6 +554,7 @@ class DeadlineWaiter:
         # one nanosecond over the period: the grid then never falls before the deadlines it stands for (their
         # own nanoseconds round up), and drifts past them by at most a nanosecond a period, until re-armed
         self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._tfd is not None else 0
+        self._period_given = period is not None  # (after cancel_call above)
         if period is not None and self.precise:  # the first wait already starts from this period's window
             self._enter_period_class(_period_class(period))
         self._pend(callback, deadline)
@@ -587,6 +590,7 @@ class DeadlineWaiter:
 
     def cancel_call(self) -> None:
         """Drop the pending :meth:`call_at` callback, if any (idempotent)."""
+        self._period_given = False  # later waits find their period class from their gaps again
         if self._call is None:
             return
         self._call = None
@@ -616,7 +620,7 @@ class DeadlineWaiter:
         if self._refresh_due:
             self._refresh_window()
         gap, self._last_deadline = deadline - self._last_deadline, deadline
-        if gap > 0:
+        if gap > 0 and not self._period_given:
             self._enter_period_class(_period_class(gap))
         window = self.spin_window_s
         if gap > 0 and window > gap * SPIN_BUDGET:

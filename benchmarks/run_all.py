@@ -1,6 +1,6 @@
 """Run every benchmark and print one results table; ``--write-readme`` also puts it into README.md.
 
-    python benchmarks/run_all.py                  # full runs (about eight minutes with Donkeycar installed)
+    python benchmarks/run_all.py                  # full runs (about ten minutes with Donkeycar installed)
     python benchmarks/run_all.py --quick          # short runs, for a look
     python benchmarks/run_all.py --write-readme   # `make bench`: full runs, README table and results JSON
     python benchmarks/run_all.py --only safety --write-readme   # rerun one; the others keep their saved figures
@@ -315,8 +315,24 @@ def zenoh_rows(d: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def wake_rows(d: dict[str, Any]) -> list[Row]:
+    """One wake-up's CPU: the drive loop's wait (an asyncdonkey waiter on uvloop) beside a thread's sleep (how
+    Donkeycar waits), the other ways of waiting in the figure's name."""
+    us = d.get("us_per_wake") or {}
+    if not us:
+        return []
+    others = [("bare uvloop", "uvloop"), ("Python epoll", "epoll"), ("timerfd read", "timerfd read")]
+    others.append(("asyncio's loop", "asyncio"))
+    named = ", ".join(f"{label} {_fmt(us.get(key), 0)}" for label, key in others)
+    o, t = us.get("asyncdonkey waiter"), us.get("sleep")
+    rate = _fmt(d.get("rate_hz"), 0)
+    figure = f"CPU per wake-up, doing nothing (µs; theirs: a thread's time.sleep, as Donkeycar waits; {named})"
+    return [(f"wake-up {rate} Hz", figure, _fmt(o, 0), _fmt(t, 0), _ratio(o, t))]
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
+    "wake": wake_rows,
     "tub": tub_rows,
     "pilot": pilot_rows,
     "safety": safety_rows,

@@ -127,3 +127,22 @@ def test_the_safety_benchmark_takes_its_per_part_overhead_from_the_loop_benchmar
     out = _module("safety").loop_overhead(300)
     assert out["ours_us"] > 0
     assert out["donkeycar_us"] > 0  # make test installs Donkeycar
+
+
+def test_the_wake_benchmark_measures_every_way_of_waiting_and_makes_its_readme_row():
+    """``benchmarks/wake.py`` end to end in a second (tiny repetitions): every way of waiting woke and cost
+    something, and run_all names them all in one row beside a thread's sleep."""
+    cmd = [sys.executable, str(BENCH / "wake.py"), "--json", "--rate=100", "--reps=2", "--seconds=0.1"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=BENCH.parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    figures = json.loads(proc.stdout)
+    ways = {"sleep", "timerfd read", "epoll", "uvloop", "asyncio", "asyncdonkey waiter"}
+    assert set(figures["us_per_wake"]) == ways == set(figures["us_per_wake_runs"])
+    for way, runs in figures["us_per_wake_runs"].items():
+        assert len(runs) == 2 and all(us > 0 for us in runs), way
+        assert min(runs) <= figures["us_per_wake"][way] <= max(runs), way
+    ((bench, figure, ours, theirs, ratio),) = _module("run_all").wake_rows(figures)
+    assert bench == "wake-up 100 Hz"
+    assert ours == f"{figures['us_per_wake']['asyncdonkey waiter']:.0f}"
+    assert theirs == f"{figures['us_per_wake']['sleep']:.0f}"
+    assert f"bare uvloop {figures['us_per_wake']['uvloop']:.0f}" in figure and ratio.endswith("x")

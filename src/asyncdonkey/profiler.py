@@ -141,12 +141,12 @@ class TickTable:
 
     __slots__ = (
         "_cache",
+        "_fold",
         "begun",
         "buf",
         "evicted_count",
         "evicted_max",
         "evicted_min",
-        "fold_rows",
         "n_parts",
         "ncol",
         "period",
@@ -162,8 +162,7 @@ class TickTable:
         self.buf = array("d", bytes(8 * window * self.ncol))
         self.rows = 0  # ticks committed
         self.begun = 0  # ticks started (rows, or rows + 1 while a tick runs)
-        #: rows folded at a time (every this many commits)
-        self.fold_rows = min(self.FOLD_ROWS, window)
+        self._fold = min(self.FOLD_ROWS, window)
         nfig = n_parts + 3
         self.evicted_min = np.full(nfig, math.inf)
         self.evicted_max = np.full(nfig, -math.inf)
@@ -176,18 +175,12 @@ class TickTable:
         return (tick % self.window) * self.ncol
 
     def commit(self) -> None:
-        """The row of tick number ``rows`` is complete (every :attr:`fold_rows` rows, :meth:`fold` keeps the
-        extremes of the rows about to be overwritten)."""
+        """The row of tick number ``rows`` is complete."""
         rows = self.rows = self.rows + 1
-        if rows % self.fold_rows == 0:
-            self.fold()
-
-    def fold(self) -> None:
-        """Keep the extremes of the next :attr:`fold_rows` rows to be overwritten, before they leave the ring."""
-        rows = self.rows
-        if rows >= self.window:
+        if rows >= self.window and rows % self._fold == 0:
+            # the next rows to be overwritten leave the window: keep their extremes
             first = rows - self.window
-            v = self._values(first, first + self.fold_rows)
+            v = self._values(first, first + self._fold)
             valid = ~np.isnan(v)
             self.evicted_count += valid.sum(axis=0)
             self.evicted_min = np.fmin(self.evicted_min, np.where(valid, v, np.inf).min(axis=0))

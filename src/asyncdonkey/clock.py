@@ -384,32 +384,25 @@ class DeadlineWaiter:
             deadline = callback()
             if deadline is not None and self._call is None:
                 arm = self._fast_arm
-                if arm is not None:
-                    ns = ceil(deadline * 1e9)
+                if interval:  # a periodic timer (in precise mode its grid is the deadlines less the window)
+                    target = deadline if arm is not None else self._target(deadline)
                     grid = self._grid_ns + interval
-                    if not interval or 0 <= grid - ns <= _GRID_SLACK_NS:
-                        # _pend's timerfd case without precise mode, written out: this runs once per period
-                        self._call = callback
-                        self._call_deadline = self._call_target = deadline
-                        self.waits += 1
-                        if interval:
-                            self._grid_ns = grid  # on the grid: the timer is already armed for it
-                        else:
-                            arm(ns)
-                        return
-                elif interval:  # precise mode on a periodic timer: its grid is the deadlines less the window
-                    target = self._target(deadline)
-                    grid = self._grid_ns + interval
-                    if 0 <= grid - ceil(target * 1e9) <= _GRID_SLACK_NS:
+                    if 0 <= grid - ceil(target * 1e9) <= _GRID_SLACK_NS:  # on the grid: already armed for it
                         self._call = callback
                         self._call_deadline = deadline
                         self._call_target = target
                         self.waits += 1
                         self._grid_ns = grid
                         return
-                    self._pend(callback, deadline, target)  # a new window, or a deadline off the grid
+                    self._pend(callback, deadline, target)  # off the grid, or a new window: a new grid
                     return
-                self._pend(callback, deadline)  # the loop's timers, precise one-shots, or a periodic timer's new grid
+                if arm is not None:  # _pend's timerfd case without precise mode, written out: once per period
+                    self._call = callback
+                    self._call_deadline = self._call_target = deadline
+                    self.waits += 1
+                    arm(ceil(deadline * 1e9))
+                    return
+                self._pend(callback, deadline)  # the loop's timers, or precise mode's one-shots
             elif interval and self._call is None:  # the series ended: stop the periodic timer
                 self._end_periodic()
             return

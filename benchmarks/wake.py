@@ -34,11 +34,11 @@ import sys
 import time
 from collections.abc import Callable
 
-import uvloop
 from prettytable import PrettyTable
 
 from asyncdonkey import _timerfd
 from asyncdonkey.clock import DeadlineWaiter
+from asyncdonkey.loop import run_blocking
 from machine_info import describe
 
 FULL = {"reps": 5, "seconds": 3.0}
@@ -100,7 +100,7 @@ def wake_epoll(period_s: float, wakes: int) -> float:
         tfd.close()
 
 
-def _on_loop(new_loop: Callable[[], asyncio.AbstractEventLoop], period_s: float, wakes: int) -> float:
+def _on_loop(use_uvloop: bool, period_s: float, wakes: int) -> float:
     async def main() -> float:
         loop = asyncio.get_running_loop()
         done = loop.create_future()
@@ -123,19 +123,15 @@ def _on_loop(new_loop: Callable[[], asyncio.AbstractEventLoop], period_s: float,
         finally:
             tfd.close()
 
-    loop = new_loop()
-    try:
-        return loop.run_until_complete(main())
-    finally:
-        loop.close()
+    return run_blocking(main(), use_uvloop=use_uvloop)
 
 
 def wake_uvloop(period_s: float, wakes: int) -> float:
-    return _on_loop(uvloop.new_event_loop, period_s, wakes)
+    return _on_loop(True, period_s, wakes)
 
 
 def wake_asyncio(period_s: float, wakes: int) -> float:
-    return _on_loop(asyncio.new_event_loop, period_s, wakes)
+    return _on_loop(False, period_s, wakes)
 
 
 def wake_waiter(period_s: float, wakes: int) -> float:
@@ -160,11 +156,7 @@ def wake_waiter(period_s: float, wakes: int) -> float:
             waiter.call_at(t0, tick, period=period_s)
             return await done
 
-    loop = uvloop.new_event_loop()
-    try:
-        return loop.run_until_complete(main())
-    finally:
-        loop.close()
+    return run_blocking(main())
 
 
 WAYS: dict[str, Callable[[float, int], float]] = {

@@ -24,9 +24,10 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
   - **Virtual clock**: an exact loop timer at the deadline, so runs are deterministic and free of float drift.
 
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
-  ticks: the timer is armed a little *before* the deadline and the rest is spun on the clock. The spin window
-  is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the
-  early timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
+  ticks: it sleeps to a guard before the deadline, sleeps again to a little *before* the deadline (a short
+  sleep wakes more punctually than a long one, see :data:`_GUARD_S`), and spins the rest on the clock. The spin
+  window is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of
+  the second timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
@@ -137,9 +138,12 @@ _WINDOW_CEIL_S = 0.5e-3
 #: ... and at most this fraction of the time between successive deadlines: a loaded machine's preemption
 #: outliers cannot be spun away, and chasing them would make precise mode spin for a large part of each period.
 SPIN_BUDGET = 0.03
-_WINDOW_START_S = 0.5e-3  # until the first samples are in, when no precise waiter has learned one yet
+#: Until the first samples are in, when no precise waiter has learned a window yet: a guess at the lateness of
+#: the second, short sleep (see :data:`_GUARD_S`), which on a 2-core VM was 46 µs at the median and at most
+#: 125 µs at the 99th percentile, noisy hours included.
+_WINDOW_START_S = 0.2e-3
 #: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
-#: waiter starts from instead of the half-millisecond guess (a drive restarted, a second periodic task).
+#: waiter starts from instead of the guess (a drive restarted, a second periodic task).
 _learned_window_s: float | None = None
 #: The lateness samples last learned from at each *period class* (:func:`_period_class`), oldest first: how late
 #: a timer wakes depends on how long the machine slept before it. Measured on a 2-core VM, a timerfd woke about
@@ -156,6 +160,21 @@ def _period_class(gap_s: float) -> int:
     do not): the key of :data:`_learned_lateness`."""
     return int(gap_s * 1e6).bit_length()
 
+
+#: Precise mode sleeps twice: its first timer is armed this long before the spin window, and a second, short
+#: sleep takes it to the window. How late a timer wakes depends on how long the machine slept: measured on a
+#: 2-core VM, after 10-50 ms a timerfd woke 55-125 µs late at the median and 90-425 µs at the 99th percentile,
+#: while a second sleep of up to a millisecond woke 46 µs late at the median and 60-120 µs at the 99th
+#: percentile (an idle processor that just ran sleeps shallowly: the idle governor, or the hypervisor's halt
+#: polling, expects it back soon). The window is then learned from the second sleep, whose tail is close to its
+#: median, and the spin shrinks accordingly: in a loop of bare timerfd waits at 100 Hz, 125-150 µs of CPU per
+#: tick against 186-189 µs for one sleep and the spin (103 µs without precise mode). The guard itself is not
+#: spun: a longer one only makes the second sleep longer, so it is a constant, well over the first sleep's
+#: 99th percentile.
+_GUARD_S = 1e-3
+_GUARD_SHARE = 0.1  # ... at most this fraction of the time between deadlines (a fast series sleeps once)
+#: A second sleep shorter than this is not armed (the rest is spun): it would wake later than the spin ends.
+_SHORT_SLEEP_MIN_S = 50e-6
 
 #: How far a periodic timer's grid (``call_at(period=...)``) may fall behind the deadlines it stands for before it
 #: is armed again on a new grid: it drifts by at most a nanosecond a period (see :meth:`DeadlineWaiter.call_at`).
@@ -260,7 +279,8 @@ class DeadlineWaiter:
     timer's loop callback resuming the waiting task directly (no Future, no extra loop pass, no ``read()``
     unless the task was busy elsewhere when the timer fired). Nothing is allocated per wait beyond a few numbers
     (the deadline in nanoseconds). A periodic :meth:`call_at` (``period=``) does not even arm: its timer is
-    periodic and each wake-up reads the expiry count instead.
+    periodic and each wake-up reads the expiry count instead. Precise mode arms twice per deadline (its guard
+    sleep, then the short sleep to the spin window) and never periodically.
     """
 
     __slots__ = (
@@ -272,6 +292,7 @@ class DeadlineWaiter:
         "_closed",
         "_fast_arm",
         "_grid_ns",
+        "_guard_s",
         "_handle",
         "_interval_ns",
         "_last_deadline",
@@ -315,6 +336,8 @@ class DeadlineWaiter:
         # call_at(period=...): the periodic timer's interval (0: armed once per deadline) and its next expiry
         self._interval_ns = 0
         self._grid_ns = -1
+        #: precise mode on a timerfd: how long before the spin window the first of its two sleeps ends
+        self._guard_s = 0.0
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
         self._on_loop_timer_cb = self._on_loop_timer
         self.precise = bool(precise) and not clock.is_virtual
@@ -368,7 +391,10 @@ class DeadlineWaiter:
                     return
             t = self._now()
             target = self._call_target
-            if t < target:  # a readiness left from an earlier arming, or a loop timer rounded early: not yet
+            # Not yet: precise mode's first sleep (a guard before the window), a readiness left from an earlier
+            # arming, or a loop timer rounded early. Sleep again, unless precise mode has too little time left
+            # for that: it spins the rest then.
+            if t < target and (not self.precise or target - t >= _SHORT_SLEEP_MIN_S):
                 self._grid_ns = -1  # (a periodic timer is armed afresh after this one-shot)
                 self._arm(target, t)
                 return
@@ -384,17 +410,15 @@ class DeadlineWaiter:
             deadline = callback()
             if deadline is not None and self._call is None:
                 arm = self._fast_arm
-                if interval:  # a periodic timer (in precise mode its grid is the deadlines less the window)
-                    target = deadline if arm is not None else self._target(deadline)
+                if interval:  # a periodic timer (never in precise mode, which sleeps twice per deadline)
                     grid = self._grid_ns + interval
-                    if 0 <= grid - ceil(target * 1e9) <= _GRID_SLACK_NS:  # on the grid: already armed for it
+                    if 0 <= grid - ceil(deadline * 1e9) <= _GRID_SLACK_NS:  # on the grid: already armed for it
                         self._call = callback
-                        self._call_deadline = deadline
-                        self._call_target = target
+                        self._call_deadline = self._call_target = deadline
                         self.waits += 1
                         self._grid_ns = grid
                         return
-                    self._pend(callback, deadline, target)  # off the grid, or a new window: a new grid
+                    self._pend(callback, deadline)  # off the grid: a new grid
                     return
                 if arm is not None:  # _pend's timerfd case without precise mode, written out: once per period
                     self._call = callback
@@ -402,7 +426,7 @@ class DeadlineWaiter:
                     self.waits += 1
                     arm(ceil(deadline * 1e9))
                     return
-                self._pend(callback, deadline)  # the loop's timers, or precise mode's one-shots
+                self._pend(callback, deadline)  # the loop's timers, or precise mode's two sleeps
             elif interval and self._call is None:  # the series ended: stop the periodic timer
                 self._end_periodic()
             return
@@ -463,15 +487,16 @@ class DeadlineWaiter:
                 wake.add_done_callback(self._on_wake_cb)
                 self._watched = wake
             try:
+                self._arm_first(target, t)
                 while True:
-                    self._arm(target, t)
                     await wakeup
                     if wake is not None and wake.done():
                         self._disarm()
                         return False
                     t = now()
-                    if t >= target:
-                        break
+                    if t >= target or (self.precise and target - t < _SHORT_SLEEP_MIN_S):
+                        break  # (precise mode spins what is left)
+                    self._arm(target, t)  # precise mode's second sleep, or a wake-up before the deadline
             except BaseException:
                 self._disarm()
                 raise
@@ -480,6 +505,12 @@ class DeadlineWaiter:
         while t < deadline:  # precise mode only: the last stretch is spun on the clock
             t = now()
         return True
+
+    def _arm_first(self, target: float, now: float) -> None:
+        """Arm for ``target``; in precise mode on a timerfd the first sleep ends a guard before it (see
+        :data:`_GUARD_S`), unless that leaves no room for a second sleep."""
+        first = target - self._guard_s
+        self._arm(first if first > now + _SHORT_SLEEP_MIN_S else target, now)
 
     def _arm(self, target: float, now: float) -> None:
         tfd = self._tfd
@@ -524,19 +555,19 @@ class DeadlineWaiter:
         drops it.
 
         ``early=True``: in precise mode, call back as soon as the early timer wakes, up to the spin window
-        before the deadline, and leave the last stretch to the callback (``while now() < deadline``), which
-        reports its first clock read with :meth:`arrived`. A callback
-        that spins itself starts its work on the instruction after the spin; when the waiter spins instead, the
-        call into the callback comes after the deadline, and on a small board that call, on caches gone cold
-        over the period, takes tens of microseconds. Without precise mode it changes nothing.
+        before the deadline (or up to :data:`_SHORT_SLEEP_MIN_S` more, when the guard sleep woke too late for
+        a second one), and leave the last stretch to the callback (``while now() < deadline``), which reports
+        its first clock read with :meth:`arrived`. A callback that spins itself starts its work on the
+        instruction after the spin; when the waiter spins instead, the call into the callback comes after the
+        deadline, and on a small board that call, on caches gone cold over the period, takes tens of
+        microseconds. Without precise mode it changes nothing.
 
         ``period``: the deadlines the callback returns are mostly ``period`` seconds apart (a drive's ticks).
         On a timerfd outside precise mode the timer is then armed periodic, on a grid of whole nanoseconds
         never before the deadlines: a deadline on the grid re-arms nothing, the kernel moves the timer on by
         itself; any other deadline (a skip after an overrun, a grid drifted more than
-        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. In precise mode the grid is the
-        deadlines less the spin window, armed afresh when the window moves (at most once every
-        ``_LATE_REFRESH`` waits, when it learns).
+        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. Precise mode sleeps twice per
+        deadline on one-shot timers instead, and learns its window for this period from the first wait on.
         """
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
@@ -546,15 +577,18 @@ class DeadlineWaiter:
             raise ValueError(f"DeadlineWaiter.call_at: period must be a positive number of seconds, got {period!r}")
         # one nanosecond over the period: the grid then never falls before the deadlines it stands for (their
         # own nanoseconds round up), and drifts past them by at most a nanosecond a period, until re-armed
-        self._interval_ns = ceil(period * 1e9) + 1 if period is not None and self._tfd is not None else 0
+        self._interval_ns = (
+            ceil(period * 1e9) + 1 if period is not None and self._tfd is not None and not self.precise else 0
+        )
         self._period_given = period is not None  # (after cancel_call above)
         if period is not None and self.precise:  # the first wait already starts from this period's window
             self._enter_period_class(_period_class(period))
+            self._last_deadline = deadline - period  # (and its spin budget and guard)
         self._pend(callback, deadline)
 
-    def _pend(self, callback: Callable[[], float | None], deadline: float, target: float | None = None) -> None:
+    def _pend(self, callback: Callable[[], float | None], deadline: float) -> None:
         """Make ``callback`` the pending call at ``deadline`` and arm for it (from :meth:`call_at`, and again
-        after each call that returned its next deadline); ``target``: when to arm, if already worked out."""
+        after each call that returned its next deadline)."""
         self._call = callback
         self._call_deadline = deadline
         if self.mode == "virtual":
@@ -564,14 +598,14 @@ class DeadlineWaiter:
             loop = self._loop
             self._handle = loop.call_at(deadline, loop.call_soon, self._virtual_fire)
             return
-        target = self._call_target = self._target(deadline) if target is None else target
+        target = self._call_target = self._target(deadline)
         self.waits += 1
         interval = self._interval_ns
         if interval:
             ns = self._grid_ns = ceil(target * 1e9)
             self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
             return
-        self._arm(target, self._now())
+        self._arm_first(target, self._now())
 
     def arrived(self, t: float) -> None:
         """From a precise-mode ``call_at(early=True)`` callback: the time it first read the clock. The spin window
@@ -618,6 +652,9 @@ class DeadlineWaiter:
         window = self.spin_window_s
         if gap > 0 and window > gap * SPIN_BUDGET:
             window = gap * SPIN_BUDGET
+        if self._tfd is not None:  # (the loop's timers are too coarse for a second, short sleep)
+            guard = gap * _GUARD_SHARE if 0 < gap * _GUARD_SHARE < _GUARD_S else _GUARD_S
+            self._guard_s = guard if guard >= 2 * _SHORT_SLEEP_MIN_S else 0.0
         return deadline - window
 
     async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:
@@ -703,6 +740,7 @@ class DeadlineWaiter:
         tfd.close()
         self._fast_arm = None
         self._interval_ns = 0
+        self._guard_s = 0.0
         self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import math
 import os
 import statistics
 import threading
@@ -635,16 +636,14 @@ def _timerfd_state(fd: int) -> tuple[int, int]:
     return spec[2] * 10**9 + spec[3], spec[0] * 10**9 + spec[1]
 
 
-@pytest.mark.parametrize("precise", [False, True], ids=["default", "precise"])
 @pytest.mark.parametrize("loop_factory", LOOPS)
-def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loop_factory, precise):
+def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loop_factory):
     """On the grid, the kernel moves the timer on by itself: one arming for the whole series. A deadline off
-    the grid (a skip after an overrun) arms a new grid; the series' end leaves the timer disarmed. In precise
-    mode the grid is the deadlines less the spin window, and the waiter spins the rest."""
+    the grid (a skip after an overrun) arms a new grid; the series' end leaves the timer disarmed."""
     period = 0.004
 
     async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], tuple[int, int]]:
-        waiter = DeadlineWaiter(precise=precise)
+        waiter = DeadlineWaiter()
         tfd = waiter._tfd
         assert tfd is not None and waiter.mode == "timerfd"
         armed: list[int] = []
@@ -678,8 +677,7 @@ def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loo
         await asyncio.sleep(3 * period)  # a timer left running would fire here
         after = _timerfd_state(tfd.fd)
         waiter.close()
-        # precise mode learns for the period it was given: the skip's longer gap is not another rate
-        assert classes == ({clock._period_class(period)} if precise else {0})
+        assert classes == {0}  # (only precise mode keeps a period class)
         return called, deadlines, armed, states, after
 
     called, deadlines, armed, states, after = run_on(loop_factory, main())
@@ -689,9 +687,107 @@ def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loo
     # armed for the first deadline and again for the skip, unless the machine stalled past a deadline (then
     # the grid is armed afresh for the next one): never once per deadline
     assert 2 <= len(armed) < len(deadlines) // 2 + 2
-    assert armed[0] >= (deadlines[0] - (clock._WINDOW_CEIL_S if precise else 0.0)) * 1e9
+    assert armed[0] >= deadlines[0] * 1e9
     assert all(interval == round(period * 1e9) + 1 for _, interval in states[:-1])  # periodic throughout
     assert after == (0, 0)  # the series ended: disarmed
+
+
+@pytest.mark.parametrize(("period", "sleeps"), [(0.02, 2), (0.0005, 1)], ids=["50Hz", "2kHz"])
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(loop_factory, period, sleeps, monkeypatch):
+    """Precise mode's first sleep ends a guard before the spin window, a second, short one at the window, and
+    the rest is spun: each deadline arms two one-shot timers, never a periodic one, and the callback never runs
+    early. A series too fast for a guard sleeps once per deadline."""
+    monkeypatch.setattr(clock, "_learned_window_s", None)  # the start window throughout (no refresh in 20 waits)
+    monkeypatch.setattr(clock, "_learned_lateness", {})
+    n = 20
+
+    async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], float, float]:
+        waiter = DeadlineWaiter(precise=True)
+        tfd = waiter._tfd
+        assert tfd is not None
+        armed: list[int] = []
+        arm = tfd.arm
+
+        def counting_arm(ns: int) -> None:
+            armed.append(ns)
+            arm(ns)
+
+        tfd.arm = counting_arm
+        now = time.monotonic
+        t0 = now() + 0.01
+        deadlines = [t0 + k * period for k in range(n)]
+        called: list[float] = []
+        states: list[tuple[int, int]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def job() -> float | None:
+            called.append(now())
+            states.append(_timerfd_state(tfd.fd))
+            if len(called) == n:
+                done.set_result(None)
+                return None
+            return deadlines[len(called)]
+
+        waiter.call_at(deadlines[0], job, period=period)
+        await asyncio.wait_for(done, 5)
+        window, guard = waiter.spin_window_s, waiter._guard_s
+        waiter.close()
+        return called, deadlines, armed, states, window, guard
+
+    called, deadlines, armed, states, window, guard = run_on(loop_factory, main())
+    for t, deadline in zip(called, deadlines, strict=True):
+        assert deadline <= t < deadline + GENEROUS_S
+    assert all(interval == 0 for _, interval in states)  # one-shots, never the periodic timer
+    window = min(window, period * clock.SPIN_BUDGET)
+    targets = {math.ceil((d - window) * 1e9) for d in deadlines}
+    if sleeps == 2:
+        assert guard == clock._GUARD_S
+        firsts = {math.ceil((d - window - guard) * 1e9) for d in deadlines}
+        # every deadline arms its guard, and then its window unless the first sleep woke too
+        # late for a second one (a stalled machine): then it spins from there
+        assert firsts <= set(armed)
+        assert len(targets & set(armed)) >= n // 2
+        assert set(armed) <= firsts | targets | {math.ceil((deadlines[0] - window - guard) * 1e9), 0}
+    else:
+        assert guard == 0.0
+        assert set(armed) <= targets | {0}  # one sleep per deadline, to its window (0: disarmed at the end)
+        assert len(armed) <= n + 1
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(loop_factory, monkeypatch):
+    """The loop is held past the end of the guard sleep until just before the spin window: too close for a
+    second sleep (it would wake after the spin), so the waiter spins from there, arming nothing more."""
+    monkeypatch.setattr(clock, "_learned_window_s", None)
+
+    async def main() -> tuple[list[int], float, float, float]:
+        waiter = DeadlineWaiter(precise=True)
+        tfd = waiter._tfd
+        assert tfd is not None
+        armed: list[int] = []
+        arm = tfd.arm
+
+        def counting_arm(ns: int) -> None:
+            armed.append(ns)
+            arm(ns)
+
+        tfd.arm = counting_arm
+        now = time.monotonic
+        deadline = now() + 0.02
+        task = asyncio.ensure_future(waiter.wait_until(deadline))
+        await asyncio.sleep(0)  # the wait has armed its guard sleep
+        target = deadline - waiter.spin_window_s
+        while now() < target - 10e-6:  # hold the loop past the guard sleep's end, up to just before the window
+            pass
+        await task
+        returned = now()
+        waiter.close()
+        return armed, deadline, target, returned
+
+    armed, deadline, target, returned = run_on(loop_factory, main())
+    assert returned >= deadline
+    assert armed == [math.ceil((target - clock._GUARD_S) * 1e9)]  # the guard sleep only
 
 
 @pytest.mark.parametrize("loop_factory", LOOPS)

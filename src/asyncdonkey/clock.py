@@ -172,7 +172,10 @@ def _period_class(gap_s: float) -> int:
 #: spun: a longer one only makes the second sleep longer, so it is a constant, well over the first sleep's
 #: 99th percentile.
 _GUARD_S = 1e-3
-_GUARD_SHARE = 0.1  # ... at most this fraction of the time between deadlines (a fast series sleeps once)
+_GUARD_SHARE = 0.1  # ... at most this fraction of the time between deadlines
+#: ... and at least this, or precise mode sleeps once (1 kHz and faster): its sleeps are short already, and a
+#: second wake-up per tick would cost more than the spin it saves.
+_GUARD_MIN_S = 0.25e-3
 #: A second sleep shorter than this is not armed (the rest is spun): it would wake later than the spin ends.
 _SHORT_SLEEP_MIN_S = 50e-6
 
@@ -654,7 +657,7 @@ class DeadlineWaiter:
             window = gap * SPIN_BUDGET
         if self._tfd is not None:  # (the loop's timers are too coarse for a second, short sleep)
             guard = gap * _GUARD_SHARE if 0 < gap * _GUARD_SHARE < _GUARD_S else _GUARD_S
-            self._guard_s = guard if guard >= 2 * _SHORT_SLEEP_MIN_S else 0.0
+            self._guard_s = guard if guard >= _GUARD_MIN_S else 0.0
         return deadline - window
 
     async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:

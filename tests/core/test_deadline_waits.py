@@ -692,7 +692,7 @@ def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loo
     assert after == (0, 0)  # the series ended: disarmed
 
 
-@pytest.mark.parametrize(("period", "sleeps"), [(0.02, 2), (0.0005, 1)], ids=["50Hz", "2kHz"])
+@pytest.mark.parametrize(("period", "sleeps"), [(0.02, 2), (0.001, 1)], ids=["50Hz", "1kHz"])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(loop_factory, period, sleeps, monkeypatch):
     """Precise mode's first sleep ends a guard before the spin window, a second, short one at the window, and

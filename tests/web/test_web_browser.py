@@ -1,7 +1,7 @@
 """The drive page in a real browser (headless Chromium) against a car driving in real time in its own thread.
 
-A person's view: the page loads clean, touch and keys drive the PWM outputs, the video moves, mode and
-recording round-trip, STOP and a closed tab bring the throttle to neutral, and no token means no entry.
+A person's view: the page loads clean, touch, keys, tilt and a gamepad drive the PWM outputs, the video
+moves, mode and recording round-trip, STOP and a closed tab bring the throttle to neutral, and no token means no entry.
 """
 
 from __future__ import annotations
@@ -24,8 +24,10 @@ def car(tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebCar]:
 class Page:
     """A browser tab opened on the URL the car printed, collecting console errors and page errors."""
 
-    def __init__(self, browser: Any, car: WebCar, **context: Any) -> None:
+    def __init__(self, browser: Any, car: WebCar, init_script: str | None = None, **context: Any) -> None:
         self.context = browser.new_context(**context)
+        if init_script is not None:  # runs in the page before its own scripts
+            self.context.add_init_script(init_script)
         self.page = self.context.new_page()
         self.errors: list[str] = []
         self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
@@ -105,6 +107,84 @@ def test_touch_joystick_drives(browser: Any, car: WebCar):
         assert phone.errors == []
     finally:
         phone.close()
+
+
+def test_tilting_the_phone_drives(browser: Any, car: WebCar):
+    """The phone's motion sensor, as Chromium emulates it for the page: the way the phone is held when tilt is
+    switched on is "stopped"; tipping it forward drives, rolling it steers, holding it level again stops."""
+    phone = Page(browser, car, has_touch=True, is_mobile=True, viewport={"width": 390, "height": 800})
+    try:
+        page = phone.page
+        cdp = phone.context.new_cdp_session(page)
+
+        def hold(beta: float, gamma: float) -> None:  # pitch forward/back, roll left/right (degrees)
+            cdp.send("DeviceOrientation.setDeviceOrientationOverride", {"alpha": 0, "beta": beta, "gamma": gamma})
+
+        hold(40, 0)
+        page.click("#tilt")  # (the page asks for the motion sensors first, where the browser has that step)
+        page.wait_for_selector("#tilt[aria-pressed=true]", timeout=5_000)
+        wait_until(lambda: phone.text("#source") == "tilt", what="the page steering by tilt")
+        hold(30, 15)  # 10 degrees forward of where it was held (of 25 for full throttle), rolled 15 right (of 30)
+        wait_until(
+            lambda: car.mem["user/throttle"] == pytest.approx(0.2) and car.mem["user/angle"] == pytest.approx(0.5),
+            what="tilt driving (0.4 of the page's 0.5 throttle limit, half right lock)",
+        )
+        wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse from the tilt")
+        wait_until(lambda: car.steering_pulse() < 360, what="a right-steering pulse from the roll")
+        hold(40, 0)  # back as it was held: stopped
+        wait_until(lambda: car.mem["user/throttle"] == 0 and car.mem["user/angle"] == 0, what="held level again")
+        wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, what="the throttle at neutral")
+        page.click("#tilt")
+        assert page.locator("#tilt").get_attribute("aria-pressed") == "false"
+        assert phone.errors == []
+    finally:
+        phone.close()
+
+
+# A gamepad as the page sees one through the Gamepad API (``navigator.getGamepads()``, standard layout): the
+# test moves its sticks and presses its buttons by changing ``window.testPad``.
+_GAMEPAD = """
+window.testPad = {id: "test pad (standard)", index: 0, connected: true, mapping: "standard", timestamp: 0,
+                  axes: [0, 0, 0, 0], buttons: Array.from({length: 17}, () => ({pressed: false, value: 0}))};
+navigator.getGamepads = () => [window.testPad, null, null, null];
+"""
+
+
+def test_a_gamepad_drives_and_its_b_button_stops(browser: Any, car: WebCar):
+    pad = Page(browser, car, init_script=_GAMEPAD)
+    try:
+        page = pad.page
+
+        def sticks(left_x: float, right_y: float) -> None:
+            page.evaluate(f"window.testPad.axes = [{left_x}, 0, 0, {right_y}]")
+
+        sticks(-0.6, -0.8)  # left stick to the left, right stick forward (Donkeycar's layout)
+        wait_until(
+            lambda: car.mem["user/throttle"] == pytest.approx(0.4) and car.mem["user/angle"] == pytest.approx(-0.6),
+            what="gamepad driving (0.8 of the page's 0.5 throttle limit, 0.6 left)",
+        )
+        assert pad.text("#source") == "gamepad" and pad.text("#control") == "you drive"
+        wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse from the gamepad")
+        wait_until(lambda: car.steering_pulse() > 390, what="a left-steering pulse from the gamepad")
+        sticks(0.05, -0.1)  # a stick resting a little off centre is inside the dead zone
+        wait_until(lambda: car.mem["user/throttle"] == 0 and car.mem["user/angle"] == 0, what="sticks at rest")
+        sticks(0, -0.8)
+        wait_until(lambda: car.mem["user/throttle"] > 0, what="driving again")
+        page.evaluate("window.testPad.buttons[1] = {pressed: true, value: 1}")  # B / circle
+        wait_until(lambda: car.mem["user/throttle"] == 0, 2, "B to stop")
+        wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "the throttle at neutral")
+        page.evaluate("window.testPad.buttons[1] = {pressed: false, value: 0}")
+        page.wait_for_timeout(300)  # the stick is still forward: the stop holds until everything is at rest
+        assert car.mem["user/throttle"] == 0
+        sticks(0, 0)
+        page.wait_for_timeout(200)
+        sticks(0, -0.8)
+        wait_until(lambda: car.mem["user/throttle"] > 0, what="driving after the sticks came back to rest")
+        sticks(0, 0)
+        assert pad.errors == []
+    finally:
+        pad.close()
+    wait_until(lambda: car.ctr.desk.driver is None, 5, "control to be free after the tab closed")
 
 
 def _pixels(png: bytes) -> np.ndarray:

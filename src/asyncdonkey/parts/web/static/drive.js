@@ -52,17 +52,23 @@
   }
 
   // ------------------------------------------------------------------ inputs
+  let padStopHeld = false; // B / circle was down at the last look
   function gamepad() {
     const pads = navigator.getGamepads ? navigator.getGamepads() : [];
+    const dz = (v) => (Math.abs(v || 0) < 0.12 ? 0 : v);
+    let sticks = null, held = false;
     for (const g of pads) {
       if (!g || !g.axes.length) continue;
-      const dz = (v) => (Math.abs(v || 0) < 0.12 ? 0 : v);
-      if (g.buttons[1] && g.buttons[1].pressed) { stop(); return null; } // B / circle: stop
+      if (g.buttons[1] && g.buttons[1].pressed) held = true; // B / circle: stop
       const a = dz(g.axes[0]);
       const t = -dz(g.axes.length > 3 ? g.axes[3] : g.axes[1]); // right stick (Donkeycar's joystick layout)
-      if (a || t) return { a, t };
+      if (!sticks && (a || t)) sticks = { a, t };
     }
-    return null;
+    // Stop once per press; while B is held, and then until every input is back at rest (as after STOP or
+    // space), the sticks do not drive: a stick still forward when B comes up does not start the car again.
+    if (held) { if (!padStopHeld) stop(); st.stopLatch = true; }
+    padStopHeld = held;
+    return sticks;
   }
 
   function command() {

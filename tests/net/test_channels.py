@@ -2,13 +2,12 @@
 
 import asyncio
 import logging
-import math
 import time
 
 import numpy as np
 import pytest
 import zenoh
-from zenoh_loopback import until
+from zenoh_loopback import PulseProbe, RemotePilot, until
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.actuators import PWMThrottle
@@ -182,30 +181,6 @@ def _put(link, key, payload, **kw):
     link.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **kw)
 
 
-class _RemotePilot:
-    """Publishes a throttle of 0.5 from the remote session each tick for ``seconds``, then goes quiet."""
-
-    def __init__(self, pub: ZenohPublisher, seconds: float) -> None:
-        self.pub = pub
-        self.seconds = seconds
-        self.t0: float | None = None
-
-    def run(self) -> None:
-        now = time.monotonic()
-        self.t0 = self.t0 or now
-        if now - self.t0 < self.seconds:
-            self.pub.run(0.5, 0.0)
-
-
-class _Probe:
-    def __init__(self, pca: PCA9685Model) -> None:
-        self.pca = pca
-        self.rows: list[tuple[float, int, float]] = []
-
-    def run(self, age):
-        self.rows.append((time.monotonic(), self.pca.pulse(0), math.inf if age is None else age))
-
-
 @pytest.mark.asyncio
 async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_quiet(link_pair):
     car, pilot = link_pair("cars/c1")
@@ -213,9 +188,9 @@ async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_q
     pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
     buses = sim.registry(retry_delay_s=0)
     v = Vehicle()
-    probe = _Probe(pca)
+    probe = PulseProbe(pca)
     v.add(probe, inputs=["pilot/throttle@age"])
-    v.add(_RemotePilot(ZenohPublisher(pilot, ["pilot/throttle"]), seconds=0.6))
+    v.add(RemotePilot(ZenohPublisher(pilot, ["pilot/throttle"]), seconds=0.6))
     v.add(ZenohSubscriber(car, ["pilot/throttle"]), outputs=["pilot/throttle"])
     throttle = PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0, failsafe_age_s=0.25)
     v.add(throttle, inputs=["pilot/throttle", "pilot/throttle@age"])

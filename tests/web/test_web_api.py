@@ -4,7 +4,10 @@ calibration and the MJPEG stream. Timing assertions only bound what a loaded mac
 
 import asyncio
 import contextlib
+import datetime
+import ipaddress
 import json
+import ssl
 
 import aiohttp
 import cv2
@@ -67,6 +70,65 @@ async def test_without_the_token_everything_is_401_and_the_printed_url_sets_a_co
     async with aiohttp.ClientSession() as http:
         with pytest.raises(aiohttp.ClientConnectionError):  # the drive's end closed the server
             await http.get(base + "/status", headers=auth(car))
+
+
+def _self_signed(tmp_path) -> tuple[ssl.SSLContext, ssl.SSLContext]:
+    """A certificate for 127.0.0.1 as the docs tell a user to make one: the server's context, and a client's
+    that trusts exactly that certificate (a phone that accepted it once)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "donkey")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=1))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False)
+        .sign(key, hashes.SHA256())
+    )
+    crt, pem = tmp_path / "car.crt", tmp_path / "car.key"
+    crt.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    pem.write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
+    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    server.load_cert_chain(crt, pem)
+    return server, ssl.create_default_context(cafile=crt)
+
+
+@pytest.mark.asyncio
+async def test_served_over_https_the_page_and_its_websocket_drive_the_car(tmp_path):
+    """What a phone needs for the screen wake lock and motion sensors: the same controller over TLS."""
+    server_ctx, client_ctx = _self_signed(tmp_path)
+    async with driving(WebCar(tmp_path, ssl_context=server_ctx)) as car:
+        port = car.ctr.port
+        assert car.ctr.url == f"https://127.0.0.1:{port}/drive?token={car.ctr.token}"  # what the car prints
+        base = f"https://127.0.0.1:{port}"
+        jar = aiohttp.CookieJar(unsafe=True)
+        async with aiohttp.ClientSession(cookie_jar=jar, connector=aiohttp.TCPConnector(ssl=client_ctx)) as http:
+            async with http.get(car.ctr.url) as r:  # the token for a cookie, then the page
+                assert r.status == 200 and str(r.url) == base + "/drive" and "drive.js" in await r.text()
+            async with http.ws_connect(base + "/wsDrive", headers={"Origin": base}) as ws:  # wss://
+                assert (await ws.receive_json())["control"] == "free"
+                await ws.send_json({"angle": 0.0, "throttle": 0.4})
+                await await_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="a forward pulse over wss")
+                await ws.send_json({"angle": 0.0, "throttle": 0.0})
+                await await_until(lambda: car.throttle_pulse() == ZERO_PULSE, what="stopped over wss")
+        async with aiohttp.ClientSession() as http:  # plain HTTP on the TLS port gets nothing
+            with pytest.raises(aiohttp.ClientError):
+                async with http.get(f"http://127.0.0.1:{port}/status", headers=auth(car)) as r:
+                    await r.read()
+        async with aiohttp.ClientSession() as http:  # nor does a client that does not trust the certificate
+            with pytest.raises(aiohttp.ClientConnectorCertificateError):
+                await http.get(base + "/status", headers=auth(car))
 
 
 @pytest.mark.asyncio

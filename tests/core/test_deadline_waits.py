@@ -636,6 +636,20 @@ def _timerfd_state(fd: int) -> tuple[int, int]:
     return spec[2] * 10**9 + spec[3], spec[0] * 10**9 + spec[1]
 
 
+def _record_arms(tfd: _timerfd.Timerfd | None) -> list[int]:
+    """Every one-shot arming of ``tfd`` from now on, in nanoseconds (0: disarmed), as the waiter asks for it."""
+    assert tfd is not None
+    armed: list[int] = []
+    arm = tfd.arm
+
+    def recording_arm(ns: int) -> None:
+        armed.append(ns)
+        arm(ns)
+
+    tfd.arm = recording_arm  # type: ignore[method-assign]
+    return armed
+
+
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loop_factory):
     """On the grid, the kernel moves the timer on by itself: one arming for the whole series. A deadline off
@@ -705,15 +719,7 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(loop_fac
     async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], float, float]:
         waiter = DeadlineWaiter(precise=True)
         tfd = waiter._tfd
-        assert tfd is not None
-        armed: list[int] = []
-        arm = tfd.arm
-
-        def counting_arm(ns: int) -> None:
-            armed.append(ns)
-            arm(ns)
-
-        tfd.arm = counting_arm
+        armed = _record_arms(tfd)
         now = time.monotonic
         t0 = now() + 0.01
         deadlines = [t0 + k * period for k in range(n)]
@@ -763,16 +769,7 @@ def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(l
 
     async def main() -> tuple[list[int], float, float, float]:
         waiter = DeadlineWaiter(precise=True)
-        tfd = waiter._tfd
-        assert tfd is not None
-        armed: list[int] = []
-        arm = tfd.arm
-
-        def counting_arm(ns: int) -> None:
-            armed.append(ns)
-            arm(ns)
-
-        tfd.arm = counting_arm
+        armed = _record_arms(waiter._tfd)
         now = time.monotonic
         deadline = now() + 0.02
         task = asyncio.ensure_future(waiter.wait_until(deadline))

@@ -7,14 +7,12 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from zenoh_loopback import PulseProbe, RemotePilot, until
+from zenoh_loopback import RemotePilotCar, until
 
 from asyncdonkey import Vehicle
-from asyncdonkey.parts.actuators import PWMThrottle
 from asyncdonkey.parts.zenoh import ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import pack_attachment
 from asyncdonkey.parts.zenoh.parts import covering_key
-from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 
 @pytest.mark.asyncio
@@ -183,19 +181,9 @@ def _put(link, key, payload, **kw):
 
 @pytest.mark.asyncio
 async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_quiet(link_pair):
-    car, pilot = link_pair("cars/c1")
-    sim = I2CSimulator()
-    pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
-    buses = sim.registry(retry_delay_s=0)
-    v = Vehicle()
-    probe = PulseProbe(pca)
-    v.add(probe, inputs=["pilot/throttle@age"])
-    v.add(RemotePilot(ZenohPublisher(pilot, ["pilot/throttle"]), seconds=0.6))
-    v.add(ZenohSubscriber(car, ["pilot/throttle"]), outputs=["pilot/throttle"])
-    throttle = PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0, failsafe_age_s=0.25)
-    v.add(throttle, inputs=["pilot/throttle", "pilot/throttle@age"])
-    await v.run(rate_hz=50, max_loop_count=60)  # 1.2 s: 0.6 s driven, then silence
-    buses.close_all()
+    car = RemotePilotCar(*link_pair("cars/c1"), seconds=0.6)
+    await car.drive(60)  # 1.2 s: 0.6 s driven, then silence
+    probe, throttle = car.probe, car.throttle
     t0 = probe.rows[0][0]
     driving = [p for t, p, _ in probe.rows if 0.2 < t - t0 < 0.55]
     stopped = [p for t, p, _ in probe.rows if t - t0 > 0.6 + 0.25 + 0.1]

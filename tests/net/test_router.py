@@ -12,13 +12,11 @@ from collections.abc import Iterator
 
 import pytest
 import zenoh
-from zenoh_loopback import PulseProbe, RemotePilot, connector, free_port, until
+from zenoh_loopback import RemotePilotCar, connector, free_port, until
 
 from asyncdonkey import Vehicle
-from asyncdonkey.parts.actuators import PWMThrottle
 from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher
-from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 
 class Router:
@@ -122,17 +120,9 @@ async def test_the_fleet_view_hears_every_car_through_the_router(router):
 
 @pytest.mark.asyncio
 async def test_when_the_router_goes_away_the_car_stops_within_the_failsafe_window(router):
-    car, pilot = router.client("cars/alpha"), router.client("cars/alpha")
-    sim = I2CSimulator()
-    pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
-    buses = sim.registry(retry_delay_s=0)
-    v = Vehicle()
-    probe = PulseProbe(pca)
-    v.add(probe, inputs=["pilot/throttle@age"])
-    v.add(RemotePilot(ZenohPublisher(pilot, ["pilot/throttle"])))  # never goes quiet: the network does
-    v.add(ZenohSubscriber(car, ["pilot/throttle"]), outputs=["pilot/throttle"])
-    throttle = PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0, failsafe_age_s=0.25)
-    v.add(throttle, inputs=["pilot/throttle", "pilot/throttle@age"])
+    # the pilot never goes quiet: the network does
+    car = RemotePilotCar(router.client("cars/alpha"), router.client("cars/alpha"))
+    probe, throttle = car.probe, car.throttle
     stopped_at: list[float] = []
 
     def router_down() -> None:
@@ -140,8 +130,7 @@ async def test_when_the_router_goes_away_the_car_stops_within_the_failsafe_windo
         stopped_at.append(time.monotonic())
 
     asyncio.get_running_loop().call_later(0.6, router_down)
-    await v.run(rate_hz=50, max_loop_count=60)  # 1.2 s: the router goes at 0.6 s
-    buses.close_all()
+    await car.drive(60)  # 1.2 s: the router goes at 0.6 s
     assert stopped_at, "the router was not stopped during the drive"
     t0 = probe.rows[0][0]
     down = stopped_at[0]

@@ -8,8 +8,10 @@ import socket
 import time
 from collections.abc import Callable
 
-from asyncdonkey.parts.zenoh import ZenohPublisher, zenoh_config
-from asyncdonkey.testing.i2c_models import PCA9685Model
+from asyncdonkey import Vehicle
+from asyncdonkey.parts.actuators import PWMThrottle
+from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
+from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 
 def free_port() -> int:
@@ -60,3 +62,27 @@ class PulseProbe:
 
     def run(self, age):
         self.rows.append((time.monotonic(), self.pca.pulse(0), math.inf if age is None else age))
+
+
+class RemotePilotCar:
+    """A car driven over ``car_link`` by a :class:`RemotePilot` on ``pilot_link`` (``seconds`` long): its
+    ``PWMThrottle`` (failsafe at 250 ms) on a PCA9685 model, and a :class:`PulseProbe` reading the chip."""
+
+    def __init__(self, car_link: ZenohLink, pilot_link: ZenohLink, seconds: float = math.inf) -> None:
+        sim = I2CSimulator()
+        pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
+        self.buses = sim.registry(retry_delay_s=0)
+        self.vehicle = v = Vehicle()
+        self.probe = PulseProbe(pca)
+        v.add(self.probe, inputs=["pilot/throttle@age"])
+        v.add(RemotePilot(ZenohPublisher(pilot_link, ["pilot/throttle"]), seconds))
+        v.add(ZenohSubscriber(car_link, ["pilot/throttle"]), outputs=["pilot/throttle"])
+        self.throttle = PWMThrottle("PCA9685.1:40.0", buses=self.buses, arm_s=0, failsafe_age_s=0.25)
+        v.add(self.throttle, inputs=["pilot/throttle", "pilot/throttle@age"])
+
+    async def drive(self, ticks: int) -> None:
+        """``ticks`` at 50 Hz, then the I2C buses closed."""
+        try:
+            await self.vehicle.run(rate_hz=50, max_loop_count=ticks)
+        finally:
+            self.buses.close_all()

@@ -24,10 +24,11 @@ Three pieces, used by the drive loop, the hardware pollers and every periodic pa
   - **Virtual clock**: an exact loop timer at the deadline, so runs are deterministic and free of float drift.
 
 * **Precise mode** (``DeadlineWaiter(precise=True)``, ``Vehicle.run(precise=True)``) trades CPU for tighter
-  ticks: it sleeps to a guard before the deadline, sleeps again to a little *before* the deadline (a short
-  sleep wakes more punctually than a long one, see :data:`_GUARD_S`), and spins the rest on the clock. The spin
-  window is learned from the wake-up lateness actually observed: the 99th percentile of the recent lateness of
-  the second timer, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
+  ticks: it sleeps to a little *before* the deadline and spins the rest on the clock. Where the machine's
+  wake-ups have a long tail it sleeps twice, to a guard before that and then to it (a short sleep wakes more
+  punctually than a long one, see :data:`_GUARD_S` and :data:`_TWO_STAGE_ABOVE_S`). The spin window is learned
+  from the wake-up lateness actually observed: the 99th percentile of the recent lateness of the timer before
+  the spin, less :data:`PRECISE_TOLERANCE_S` (the lateness precise mode accepts, 20 µs), so that 99 % of the
   ticks start within that tolerance while the spin lasts no longer than it takes. A quiet machine spins for
   tens of microseconds, a noisy one for longer, and nobody spins for a guessed constant. The spin never takes
   more than half a millisecond, nor more than :data:`SPIN_BUDGET` (3 %) of the time between deadlines:
@@ -153,6 +154,10 @@ _learned_window_s: float | None = None
 #: a drive restarted at the same rate keeps its quantile over a thousand wake-ups instead of starting again from
 #: the largest of its first few dozen (one outlier would set the window).
 _learned_lateness: dict[int, array[float]] = {}
+#: Whether the samples of :data:`_learned_lateness` at a period class are of two sleeps (the second one's
+#: lateness) or of one (see :data:`_TWO_STAGE_ABOVE_S`), and the first sleep's lateness samples there.
+_learned_two_stage: dict[int, bool] = {}
+_learned_first: dict[int, array[float]] = {}
 
 
 def _period_class(gap_s: float) -> int:
@@ -178,6 +183,17 @@ _GUARD_SHARE = 0.1  # ... at most this fraction of the time between deadlines
 _GUARD_MIN_S = 0.25e-3
 #: A second sleep shorter than this is not armed (the rest is spun): it would wake later than the spin ends.
 _SHORT_SLEEP_MIN_S = 50e-6
+#: Two sleeps pay only where the first sleep's lateness has a long tail: one sleep spins about its 99th
+#: percentile less its median (less the tolerance), two sleeps cost a wake-up more (25-40 µs measured) and spin
+#: the second sleep's spread. So precise mode goes to two sleeps when that percentile is more than this over the
+#: median, and back to one when it is less than :data:`_ONE_STAGE_BELOW_S` (in between either costs about the
+#: same, and staying put keeps the window learned). An idle virtual machine's tail was 90-370 µs over its median;
+#: a machine busy on its other core, or a small board, wakes within a few tens of microseconds, and there the
+#: second wake-up cost more than it saved (106-112 against 113-130 µs of CPU per tick at 100 Hz beside a busy
+#: core).
+_TWO_STAGE_ABOVE_S = 75e-6
+_ONE_STAGE_BELOW_S = 45e-6
+_FIRST_SAMPLES = 256  # recent lateness samples of the first sleep, for that choice
 
 #: How far a periodic timer's grid (``call_at(period=...)``) may fall behind the deadlines it stands for before it
 #: is armed again on a new grid: it drifts by at most a nanosecond a period (see :meth:`DeadlineWaiter.call_at`).
@@ -282,8 +298,8 @@ class DeadlineWaiter:
     timer's loop callback resuming the waiting task directly (no Future, no extra loop pass, no ``read()``
     unless the task was busy elsewhere when the timer fired). Nothing is allocated per wait beyond a few numbers
     (the deadline in nanoseconds). A periodic :meth:`call_at` (``period=``) does not even arm: its timer is
-    periodic and each wake-up reads the expiry count instead. Precise mode arms twice per deadline (its guard
-    sleep, then the short sleep to the spin window) and never periodically.
+    periodic and each wake-up reads the expiry count instead. Precise mode arms once or twice per deadline (a
+    guard sleep, then the short sleep to the spin window) and never periodically.
     """
 
     __slots__ = (
@@ -294,6 +310,9 @@ class DeadlineWaiter:
         "_call_target",
         "_closed",
         "_fast_arm",
+        "_first_at",
+        "_first_late",
+        "_first_n",
         "_grid_ns",
         "_guard_s",
         "_handle",
@@ -305,11 +324,13 @@ class DeadlineWaiter:
         "_now",
         "_on_loop_timer_cb",
         "_on_wake_cb",
+        "_other_late",
         "_period_class",
         "_period_given",
         "_refresh_due",
         "_tfd",
         "_timer_slop",
+        "_two_stage",
         "_vfut",
         "_wakeup",
         "_watched",
@@ -341,6 +362,11 @@ class DeadlineWaiter:
         self._grid_ns = -1
         #: precise mode on a timerfd: how long before the spin window the first of its two sleeps ends
         self._guard_s = 0.0
+        self._two_stage = True  # precise mode sleeps twice (until the first sleep's lateness says otherwise)
+        self._first_at = 0.0  # when the pending first sleep was armed to end (0: none pending)
+        self._first_late = array("d")  # the first sleep's recent lateness, in both modes
+        self._first_n = 0
+        self._other_late = array("d")  # the window's samples of the other mode, kept for a switch back
         self._on_wake_cb = self._on_wake  # bound once: no bound-method object per wait
         self._on_loop_timer_cb = self._on_loop_timer
         self.precise = bool(precise) and not clock.is_virtual
@@ -394,6 +420,8 @@ class DeadlineWaiter:
                     return
             t = self._now()
             target = self._call_target
+            if self._first_at and self.precise:
+                self._first_woke(t)
             # Not yet: precise mode's first sleep (a guard before the window), a readiness left from an earlier
             # arming, or a loop timer rounded early. Sleep again, unless precise mode has too little time left
             # for that: it spins the rest then.
@@ -413,7 +441,7 @@ class DeadlineWaiter:
             deadline = callback()
             if deadline is not None and self._call is None:
                 arm = self._fast_arm
-                if interval:  # a periodic timer (never in precise mode, which sleeps twice per deadline)
+                if interval:  # a periodic timer (never in precise mode: one-shot sleeps, see _arm_first)
                     grid = self._grid_ns + interval
                     if 0 <= grid - ceil(deadline * 1e9) <= _GRID_SLACK_NS:  # on the grid: already armed for it
                         self._call = callback
@@ -429,7 +457,7 @@ class DeadlineWaiter:
                     self.waits += 1
                     arm(ceil(deadline * 1e9))
                     return
-                self._pend(callback, deadline)  # the loop's timers, or precise mode's two sleeps
+                self._pend(callback, deadline)  # the loop's timers, or precise mode's sleeps
             elif interval and self._call is None:  # the series ended: stop the periodic timer
                 self._end_periodic()
             return
@@ -497,6 +525,8 @@ class DeadlineWaiter:
                         self._disarm()
                         return False
                     t = now()
+                    if self._first_at and self.precise:
+                        self._first_woke(t)
                     if t >= target or (self.precise and target - t < _SHORT_SLEEP_MIN_S):
                         break  # (precise mode spins what is left)
                     self._arm(target, t)  # precise mode's second sleep, or a wake-up before the deadline
@@ -513,7 +543,24 @@ class DeadlineWaiter:
         """Arm for ``target``; in precise mode on a timerfd the first sleep ends a guard before it (see
         :data:`_GUARD_S`), unless that leaves no room for a second sleep."""
         first = target - self._guard_s
-        self._arm(first if first > now + _SHORT_SLEEP_MIN_S else target, now)
+        if first <= now + _SHORT_SLEEP_MIN_S:
+            first = target
+        self._first_at = first
+        self._arm(first, now)
+
+    def _first_woke(self, t: float) -> None:
+        """A wake-up at ``t`` while a first sleep is pending: keep its lateness, unless it is a readiness left
+        from an earlier arming (before the first sleep's end)."""
+        first = self._first_at
+        if t < first:
+            return
+        self._first_at = 0.0
+        samples = self._first_late
+        if len(samples) < _FIRST_SAMPLES:
+            samples.append(t - first)
+        else:
+            samples[self._first_n % _FIRST_SAMPLES] = t - first
+        self._first_n += 1
 
     def _arm(self, target: float, now: float) -> None:
         tfd = self._tfd
@@ -569,8 +616,8 @@ class DeadlineWaiter:
         On a timerfd outside precise mode the timer is then armed periodic, on a grid of whole nanoseconds
         never before the deadlines: a deadline on the grid re-arms nothing, the kernel moves the timer on by
         itself; any other deadline (a skip after an overrun, a grid drifted more than
-        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. Precise mode sleeps twice per
-        deadline on one-shot timers instead, and learns its window for this period from the first wait on.
+        :data:`_GRID_SLACK_NS` past the deadlines) re-arms it on a new grid. Precise mode sleeps once or twice
+        per deadline on one-shot timers instead, and learns its window for this period from the first wait on.
         """
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
@@ -655,9 +702,11 @@ class DeadlineWaiter:
         window = self.spin_window_s
         if gap > 0 and window > gap * SPIN_BUDGET:
             window = gap * SPIN_BUDGET
-        if self._tfd is not None:  # (the loop's timers are too coarse for a second, short sleep)
+        if self._tfd is not None and self._two_stage:  # (the loop's timers are too coarse for a second sleep)
             guard = gap * _GUARD_SHARE if 0 < gap * _GUARD_SHARE < _GUARD_S else _GUARD_S
             self._guard_s = guard if guard >= _GUARD_MIN_S else 0.0
+        else:
+            self._guard_s = 0.0
         return deadline - window
 
     async def _wait_virtual(self, deadline: float, wake: asyncio.Future[Any] | None) -> bool:
@@ -707,15 +756,29 @@ class DeadlineWaiter:
         if self._late_n < _LATE_WARMUP:
             past = _learned_lateness.get(cls)
             if past is not None:
-                own = self._late
+                firsts = _learned_first.get(cls)
+                if firsts is not None and self._first_n < _LATE_WARMUP:  # the first sleeps' too, for the choice
+                    self._first_late = (firsts + self._firsts_oldest_first())[-_FIRST_SAMPLES:]
+                    self._first_n = len(self._first_late)
+                two = _learned_two_stage.get(cls, self._two_stage)
+                own = self._late if two == self._two_stage else array("d")  # (samples of the same kind only)
+                self._two_stage = two
                 self._late = samples = (past + own)[-_LATE_SAMPLES:]  # oldest first: the next one replaces [0]
                 self._late_n = len(samples)
                 self._refresh_window()
 
     def _refresh_window(self) -> None:
-        """Set the spin window to the high quantile of the recent lateness, less the tolerance."""
+        """Choose one sleep or two (:data:`_TWO_STAGE_SPREAD_S`), and set the spin window to the high quantile of
+        the recent lateness of the sleep before the spin, less the tolerance."""
         self._refresh_due = False
+        if self._first_n >= _LATE_WARMUP and self._tfd is not None:
+            firsts = sorted(self._first_late)
+            spread = firsts[int(_LATE_QUANTILE * (len(firsts) - 1))] - firsts[len(firsts) // 2]
+            if spread > _TWO_STAGE_ABOVE_S if not self._two_stage else spread < _ONE_STAGE_BELOW_S:
+                self._switch_stages()
         samples = self._late
+        if not samples:  # two sleeps again, none learned of the second yet: the window so far until then
+            return
         rank = len(samples) - min(len(samples) - 1, int(_LATE_QUANTILE * len(samples)))  # from the top, 1-based
         q = heapq.nlargest(rank, samples)[-1]
         global _learned_window_s
@@ -723,6 +786,27 @@ class DeadlineWaiter:
         if self._period_class:
             start = self._late_n % len(samples) if len(samples) == _LATE_SAMPLES else 0
             _learned_lateness[self._period_class] = samples[start:] + samples[:start]  # a copy, oldest first
+            _learned_two_stage[self._period_class] = self._two_stage
+            _learned_first[self._period_class] = self._firsts_oldest_first()
+
+    def _firsts_oldest_first(self) -> array[float]:
+        firsts = self._first_late
+        start = self._first_n % len(firsts) if len(firsts) == _FIRST_SAMPLES else 0
+        return firsts[start:] + firsts[:start]
+
+    def _switch_stages(self) -> None:
+        """From two sleeps to one or back. The window's samples change kind with it: one sleep's window is
+        learned from the first sleep's lateness (its samples so far), two sleeps' from the second's (the samples
+        of the last time this waiter slept twice, if any)."""
+        two = not self._two_stage
+        current = self._late
+        if two:
+            self._late = self._other_late
+        else:
+            self._late = self._firsts_oldest_first()
+        self._other_late = current
+        self._late_n = len(self._late)
+        self._two_stage = two
 
     # ------------------------------------------------------------------------------------------ lifetime
     @property

@@ -204,6 +204,8 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, monkeypatch):
     monkeypatch.setattr(clock, "_learned_lateness", {})  # its own samples only, none taken over
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
     spacing = 0.004
 
     async def main():
@@ -540,6 +542,8 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
     """Wake-up latency depends on how long the machine slept: what is learned is kept per period class, and a
     new waiter starts from its own rate's, not from whatever rate learned last."""
     monkeypatch.setattr(clock, "_learned_lateness", {})
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
     monkeypatch.setattr(clock, "_learned_window_s", None)
 
     async def learn(spacing_s: float) -> float:
@@ -579,6 +583,8 @@ def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(m
     """A restarted drive keeps the quantile over the wake-ups before it: its first few dozen, one of them an
     outlier, do not set the window (a fresh waiter's first estimate is the largest of them)."""
     monkeypatch.setattr(clock, "_learned_lateness", {})
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
     period = 0.01
     cls = clock._period_class(period)
     typical, outlier = 100e-6, 400e-6
@@ -609,6 +615,8 @@ def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(m
 
 def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
     monkeypatch.setattr(clock, "_learned_lateness", {})
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
 
     async def main() -> tuple[float, float]:
         with DeadlineWaiter(precise=True) as waiter:
@@ -622,6 +630,41 @@ def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_
 
     own, after = run_on(uvloop.new_event_loop, main())
     assert after == own
+
+
+def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice_where_it_is_long(monkeypatch):
+    """The first sleep's lateness decides: a 99th percentile close to the median (a busy machine, a small board)
+    means one sleep is enough and the window is learned from that sleep; a long tail (an idle virtual machine)
+    means two, with the window of the second sleep, as learned the last time this waiter slept twice."""
+    monkeypatch.setattr(clock, "_learned_lateness", {})
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
+    waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
+
+    def first_sleeps(lateness: list[float]) -> None:
+        for late in lateness:
+            waiter._first_at = 1.0
+            waiter._first_woke(1.0 + late)
+
+    try:
+        assert waiter._two_stage
+        for _ in range(clock._LATE_WARMUP):
+            waiter._learn(60e-6)  # the second sleep's lateness
+        first_sleeps([50e-6 + (k % 10) * 2e-6 for k in range(clock._FIRST_SAMPLES)])  # tail 18 µs over median
+        waiter._refresh_window()
+        assert not waiter._two_stage
+        assert waiter.spin_window_s == pytest.approx(68e-6 - clock.PRECISE_TOLERANCE_S)  # the first sleep's q99
+        assert list(waiter._other_late) == [60e-6] * clock._LATE_WARMUP  # the second sleep's, kept
+        # a long tail: 3 % of the first sleeps 400 µs late
+        first_sleeps([400e-6 if k % 32 == 0 else 50e-6 for k in range(clock._FIRST_SAMPLES)])
+        waiter._refresh_window()
+        assert waiter._two_stage and waiter._guard_s == 0.0  # (armed at the next wait)
+        assert waiter.spin_window_s == pytest.approx(60e-6 - clock.PRECISE_TOLERANCE_S)
+        waiter._target(time.monotonic() + 1)
+        assert waiter._guard_s == clock._GUARD_S
+    finally:
+        waiter.close()
+        waiter._loop.close()
 
 
 # ------------------------------------------------------------------------------------ periodic timerfd
@@ -706,14 +749,27 @@ def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loo
     assert after == (0, 0)  # the series ended: disarmed
 
 
-@pytest.mark.parametrize(("period", "sleeps"), [(0.02, 2), (0.001, 1)], ids=["50Hz", "1kHz"])
+@pytest.mark.parametrize(
+    ("period", "learned_once", "sleeps"),
+    [(0.02, False, 2), (0.02, True, 1), (0.001, False, 1)],
+    ids=["50Hz", "50Hz-learned-one-sleep", "1kHz"],
+)
 @pytest.mark.parametrize("loop_factory", LOOPS)
-def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(loop_factory, period, sleeps, monkeypatch):
+def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
+    loop_factory, period, learned_once, sleeps, monkeypatch
+):
     """Precise mode's first sleep ends a guard before the spin window, a second, short one at the window, and
     the rest is spun: each deadline arms two one-shot timers, never a periodic one, and the callback never runs
-    early. A series too fast for a guard sleeps once per deadline."""
+    early. A series too fast for a guard sleeps once per deadline, and so does one at a rate where this process
+    learned that one sleep is enough (the window then from those samples)."""
     monkeypatch.setattr(clock, "_learned_window_s", None)  # the start window throughout (no refresh in 20 waits)
     monkeypatch.setattr(clock, "_learned_lateness", {})
+    monkeypatch.setattr(clock, "_learned_two_stage", {})
+    monkeypatch.setattr(clock, "_learned_first", {})
+    if learned_once:
+        cls = clock._period_class(period)
+        clock._learned_lateness[cls] = array("d", [150e-6] * 100)
+        clock._learned_two_stage[cls] = False
     n = 20
 
     async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], float, float]:
@@ -745,6 +801,8 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(loop_fac
     for t, deadline in zip(called, deadlines, strict=True):
         assert deadline <= t < deadline + GENEROUS_S
     assert all(interval == 0 for _, interval in states)  # one-shots, never the periodic timer
+    if learned_once:
+        assert window == pytest.approx(150e-6 - clock.PRECISE_TOLERANCE_S)
     window = min(window, period * clock.SPIN_BUDGET)
     targets = {math.ceil((d - window) * 1e9) for d in deadlines}
     if sleeps == 2:

@@ -549,17 +549,22 @@ class DeadlineWaiter:
         self._arm(first, now)
 
     def _first_woke(self, t: float) -> None:
-        """A wake-up at ``t`` while a first sleep is pending: keep its lateness, unless it is a readiness left
-        from an earlier arming (before the first sleep's end)."""
+        """A wake-up at ``t`` while a first sleep is pending: with two sleeps, keep its lateness (with one, the
+        window's sample is the first sleep's: :meth:`_learn`), unless it is a readiness left from an earlier
+        arming (before the first sleep's end)."""
         first = self._first_at
         if t < first:
             return
         self._first_at = 0.0
+        if self._two_stage:
+            self._keep_first(t - first)
+
+    def _keep_first(self, late: float) -> None:
         samples = self._first_late
         if len(samples) < _FIRST_SAMPLES:
-            samples.append(t - first)
+            samples.append(late)
         else:
-            samples[self._first_n % _FIRST_SAMPLES] = t - first
+            samples[self._first_n % _FIRST_SAMPLES] = late
         self._first_n += 1
 
     def _arm(self, target: float, now: float) -> None:
@@ -744,6 +749,8 @@ class DeadlineWaiter:
         n = self._late_n = n + 1
         if n % _LATE_REFRESH == 0 and n >= _LATE_WARMUP:
             self._refresh_due = True
+        if not self._two_stage:  # one sleep: it is the first sleep too
+            self._keep_first(late)
 
     def _enter_period_class(self, cls: int) -> None:
         """The time between deadlines is in period class ``cls``: until this waiter has learned a window of its
@@ -795,12 +802,14 @@ class DeadlineWaiter:
         return firsts[start:] + firsts[:start]
 
     def _switch_stages(self) -> None:
-        """From two sleeps to one or back. The window's samples change kind with it: one sleep's window is
-        learned from the first sleep's lateness (its samples so far), two sleeps' from the second's (the samples
-        of the last time this waiter slept twice, if any)."""
+        """From two sleeps to one or back. The window's samples change kind with it, to those of the last time
+        this waiter was in the other mode; going to one sleep for the first time, to the first sleep's lateness
+        so far (which lacks the way from the timer into the callback that :meth:`arrived` measures, but the
+        window learns it within :data:`_FIRST_SAMPLES` waits); going to two for the first time, to none (the
+        window stays as it is until the second sleep's own samples are in)."""
         two = not self._two_stage
         current = self._late
-        if two:
+        if two or len(self._other_late) >= _LATE_WARMUP:
             self._late = self._other_late
         else:
             self._late = self._firsts_oldest_first()

@@ -655,8 +655,9 @@ def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice
         assert not waiter._two_stage
         assert waiter.spin_window_s == pytest.approx(68e-6 - clock.PRECISE_TOLERANCE_S)  # the first sleep's q99
         assert list(waiter._other_late) == [60e-6] * clock._LATE_WARMUP  # the second sleep's, kept
-        # a long tail: 3 % of the first sleeps 400 µs late
-        first_sleeps([400e-6 if k % 32 == 0 else 50e-6 for k in range(clock._FIRST_SAMPLES)])
+        # a long tail: 3 % of the (now only) sleeps 400 µs late
+        for k in range(clock._FIRST_SAMPLES):
+            waiter._learn(400e-6 if k % 32 == 0 else 50e-6)
         waiter._refresh_window()
         assert waiter._two_stage and waiter._guard_s == 0.0  # (armed at the next wait)
         assert waiter.spin_window_s == pytest.approx(60e-6 - clock.PRECISE_TOLERANCE_S)

@@ -775,7 +775,7 @@ class DeadlineWaiter:
                 self._refresh_window()
 
     def _refresh_window(self) -> None:
-        """Choose one sleep or two (:data:`_TWO_STAGE_SPREAD_S`), and set the spin window to the high quantile of
+        """Choose one sleep or two (:data:`_TWO_STAGE_ABOVE_S`), and set the spin window to the high quantile of
         the recent lateness of the sleep before the spin, less the tolerance."""
         self._refresh_due = False
         if self._first_n >= _LATE_WARMUP and self._tfd is not None:

@@ -136,9 +136,11 @@ async def test_poller_samples_land_exactly_on_their_deadlines_on_the_virtual_clo
     v.add(poller, outputs=["imu"])
     await v.run(rate_hz=20, max_loop_count=2001)  # 100 s
     t0 = stamps[0]
-    assert len(stamps) in (6000, 6001) and poller.reads == len(stamps) and poller.skipped == 0
+    # The poller's last deadline can fall on the drive's last tick (both at 100 s): that read may still be in its
+    # thread when the drive ends and cancels the poller, and is then never published.
+    assert len(stamps) in (6000, 6001) and poller.reads in (len(stamps) - 1, len(stamps)) and poller.skipped == 0
     assert stamps == [t0 + k / 60 for k in range(len(stamps))]  # exact: the same float the schedule computed
-    assert poller.sample is not None and poller.sample.timestamp == stamps[-1]
+    assert poller.sample is not None and poller.sample.timestamp == stamps[poller.reads - 1]
 
 
 # ------------------------------------------------------------------ the poller thread's loop on modelled time

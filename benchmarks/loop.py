@@ -171,6 +171,7 @@ class Segment:
     long_run: bool = False
     skipped_deadlines: int = 0
     spin_window_ms: float | None = None  # precise mode's learned window at the segment's end
+    precise_sleeps: int | None = None  # and how many times it slept before the spin (1 or 2)
 
     @classmethod
     def from_stamp(cls, stamp: Stamp, lateness_s: np.ndarray, **kw) -> Segment:
@@ -218,7 +219,11 @@ def ours_segment(rate_hz: float, ticks: int, use_uvloop: bool, precise: bool = F
     # deadline, the ticks after it are due one period later, not "late by a period" from then on.
     late = v.profiler.lateness.recent(drop_last=False)
     return Segment.from_stamp(
-        stamp, late, skipped_deadlines=report.skipped_deadlines, spin_window_ms=report.spin_window_ms
+        stamp,
+        late,
+        skipped_deadlines=report.skipped_deadlines,
+        spin_window_ms=report.spin_window_ms,
+        precise_sleeps=report.precise_sleeps,
     )
 
 
@@ -357,7 +362,10 @@ def _spin_window(segs: list[Segment]) -> dict:
     """Precise mode's learned spin window (ms), median over the segments: what each tick spun at most, and so
     most of what precise mode costs over the default; it follows the machine's wake-up lateness."""
     windows = [s.spin_window_ms for s in segs if s.spin_window_ms is not None]
-    return {"spin_window_ms": statistics.median(windows), "spin_window_ms_rounds": windows} if windows else {}
+    if not windows:
+        return {}
+    two = sum(s.precise_sleeps == 2 for s in segs)  # segments that ended sleeping twice before the spin
+    return {"spin_window_ms": statistics.median(windows), "spin_window_ms_rounds": windows, "two_sleeps": two}
 
 
 def _p99_per_round(cfg: Config, segs: list[Segment]) -> dict:
@@ -508,7 +516,9 @@ def table(results: dict) -> str:
                 f" CPU ours/Donkeycar {ours['cpu_ratio']:.2f}"
                 + (
                     f", precise {row['ours_precise']['cpu_ratio']:.2f}"
-                    f" (spin window {row['ours_precise']['spin_window_ms']:.3f} ms)"
+                    f" (spin window {row['ours_precise']['spin_window_ms']:.3f} ms,"
+                    f" two sleeps in {row['ours_precise']['two_sleeps']} of"
+                    f" {len(row['ours_precise']['spin_window_ms_rounds'])} rounds)"
                     if "ours_precise" in row
                     else ""
                 )

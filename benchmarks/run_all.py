@@ -149,6 +149,8 @@ def loop_rows(d: dict[str, Any]) -> list[Row]:
             rows.append((name, "precise: tick lateness p99 (ms)", _late_cell(precise), _fmt(t, 3), _ratio(o, t)))
             spin = precise.get("spin_window_ms")
             spun = f"; spin window {_fmt(spin, 3)} ms" if spin is not None else ""
+            if spin is not None and "two_sleeps" in precise:  # (figures saved before precise mode could sleep twice)
+                spun += f", two sleeps in {precise['two_sleeps']} of {len(precise['spin_window_ms_rounds'])} rounds"
             rows.append((name, f"precise: CPU (% of a core{over}{spun})", *_cpu_cells(precise, dk)))
     idle = d.get("idle") or {}
     ours, dk, floor = idle.get("ours"), idle.get("donkeycar") or {}, idle.get("floor") or {}

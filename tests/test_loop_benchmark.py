@@ -101,7 +101,8 @@ def test_run_all_builds_the_readme_rows(figures: dict) -> None:
     # precise mode's CPU row names the spin window it learned (the default mode has none)
     precise = figures["rates"]["100"]["ours_precise"]
     assert len(precise["spin_window_ms_rounds"]) == ROUNDS and "spin_window_ms" not in figures["rates"]["100"]["ours"]
-    window = f"spin window {precise['spin_window_ms']:.3f} ms"
+    assert 0 <= precise["two_sleeps"] <= ROUNDS
+    window = f"spin window {precise['spin_window_ms']:.3f} ms, two sleeps in {precise['two_sleeps']} of {ROUNDS} rounds"
     spun = f"precise: CPU (% of a core; median (min-max) of {ROUNDS} rounds; {window})"
     assert by_figure[("loop 100 Hz", spun)][0].startswith(f"{precise['cpu_pct']:.2f} (")
     table = run_all.markdown(rows, "test machine", "today", quick=True)

@@ -817,6 +817,13 @@ class DeadlineWaiter:
         self._late_n = len(self._late)
         self._two_stage = two
 
+    @property
+    def sleeps(self) -> int:
+        """How many times precise mode slept before its spin at the last wait: 2 where the machine's wake-ups
+        have a long tail (a guard sleep, then a short one; see :data:`_TWO_STAGE_ABOVE_S`), else 1 (and 1
+        outside precise mode)."""
+        return 2 if self.precise and self._two_stage and self._guard_s > 0 else 1
+
     # ------------------------------------------------------------------------------------------ lifetime
     @property
     def closed(self) -> bool:
@@ -836,7 +843,6 @@ class DeadlineWaiter:
         tfd.close()
         self._fast_arm = None
         self._interval_ns = 0
-        self._guard_s = 0.0
         self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers

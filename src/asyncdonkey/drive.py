@@ -511,6 +511,7 @@ class Drive:
         if self.waiter.precise:  # the window as armed: at most its budget of the period
             window = self.waiter.spin_window_s
             r.spin_window_ms = (min(window, SPIN_BUDGET / r.rate_hz) if r.rate_hz > 0 else window) * 1e3
+            r.precise_sleeps = self.waiter.sleeps
 
 
 def latency_recorder(profiler: Profiler, name: str) -> Callable[[float, float], None]:

@@ -75,6 +75,8 @@ class DriveReport:
             name of the signal that stopped the car.
         spin_window_ms: in precise mode, the spin window at the end of the drive (learned from the machine's
             wake-up lateness: what each tick spun at most), else ``None``. Precise mode's CPU is mostly this.
+        precise_sleeps: in precise mode, how many times each tick slept before its spin at the end of the drive
+            (2 where the machine's wake-ups have a long tail, else 1), else ``None``.
     """
 
     loops: int = 0
@@ -94,6 +96,7 @@ class DriveReport:
     pipelined: dict[str, dict[str, float]] = field(default_factory=dict)
     stop_reason: str = ""
     spin_window_ms: float | None = None
+    precise_sleeps: int | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -383,7 +386,8 @@ class Vehicle:
             ("skipped deadlines", str(report.skipped_deadlines)),
         ]
         if report.spin_window_ms is not None:
-            rows.append(("precise spin window", f"{report.spin_window_ms:.3f} ms (learned)"))
+            sleeps = "two sleeps" if report.precise_sleeps == 2 else "one sleep"
+            rows.append(("precise spin window", f"{report.spin_window_ms:.3f} ms (learned; after {sleeps})"))
         for name, lat in report.latency_ms.items():
             rows.append(
                 (

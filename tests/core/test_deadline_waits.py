@@ -264,11 +264,32 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
     # what precise mode spun at most per tick is in the report, learned within its bounds
     assert report.spin_window_ms is not None
     assert clock._WINDOW_FLOOR_S * 1e3 <= report.spin_window_ms <= clock._WINDOW_CEIL_S * 1e3
-    assert "precise spin window" in v.format_report(report)
+    sleeps = {1: "one sleep", 2: "two sleeps"}[report.precise_sleeps]
+    assert f"ms (learned; after {sleeps})" in v.format_report(report)
     plain = Vehicle()
     plain.add(Stamp())
     report = asyncio.run(plain.run(rate_hz=200, max_loop_count=5))
     assert report.spin_window_ms is None and "precise spin window" not in plain.format_report(report)
+    assert report.precise_sleeps is None
+
+
+@pytest.mark.parametrize("two", [True, False], ids=["two-sleeps", "one-sleep"])
+def test_the_report_says_how_many_times_precise_ticks_slept(two, monkeypatch):
+    """A drive at a rate where the process learned two sleeps pays off reports 2; where one is enough, 1."""
+    cls = clock._period_class(1 / 200)
+    monkeypatch.setattr(clock, "_learned_lateness", {cls: array("d", [100e-6] * 100)})
+    monkeypatch.setattr(clock, "_learned_two_stage", {cls: two})
+    monkeypatch.setattr(clock, "_learned_first", {})
+
+    class Noop:
+        def run(self):
+            pass
+
+    v = Vehicle()
+    v.add(Noop())
+    report = asyncio.run(v.run(rate_hz=200, max_loop_count=40, precise=True))
+    assert report.precise_sleeps == (2 if two else 1)
+    assert report.spin_window_ms is not None
 
 
 @pytest.mark.asyncio
@@ -285,7 +306,7 @@ async def test_precise_mode_on_the_virtual_clock_is_the_exact_timer():
     report = await v.run(rate_hz=50, max_loop_count=100, precise=True)
     assert times == [times[0] + k / 50 for k in range(100)]
     assert v.profiler.lateness.max == 0.0
-    assert report.spin_window_ms is None  # nothing is spun
+    assert report.spin_window_ms is None and report.precise_sleeps is None  # nothing is spun
 
 
 # ---------------------------------------------------------------------------------------------- stop()

@@ -53,7 +53,7 @@ from array import array
 from collections.abc import Callable
 from math import ceil
 from os import read as _read
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 from . import _timerfd
 
@@ -146,23 +146,29 @@ _WINDOW_START_S = 0.2e-3
 #: The window the last precise waiter in this process learned: the machine's wake-up latency, which a new
 #: waiter starts from instead of the guess (a drive restarted, a second periodic task).
 _learned_window_s: float | None = None
-#: The lateness samples last learned from at each *period class* (:func:`_period_class`), oldest first: how late
-#: a timer wakes depends on how long the machine slept before it. Measured on a 2-core VM, a timerfd woke about
-#: 85 µs late at the median and 180 µs at the 99th percentile after 50 ms of sleep (20 Hz), against 55 and 65 µs
-#: after 10 ms (100 Hz). A waiter starting at a period this process has learned takes over that period's samples
-#: and adds its own to them: a 20 Hz drive restarted after a 100 Hz one does not spin for 100 Hz's latency, and
-#: a drive restarted at the same rate keeps its quantile over a thousand wake-ups instead of starting again from
-#: the largest of its first few dozen (one outlier would set the window).
-_learned_lateness: dict[int, array[float]] = {}
-#: Whether the samples of :data:`_learned_lateness` at a period class are of two sleeps (the second one's
-#: lateness) or of one (see :data:`_TWO_STAGE_ABOVE_S`), and the first sleep's lateness samples there.
-_learned_two_stage: dict[int, bool] = {}
-_learned_first: dict[int, array[float]] = {}
+
+
+class _Learned(NamedTuple):
+    """What precise mode learned at one period class (:func:`_period_class`), samples oldest first."""
+
+    late: array[float]  # the window's samples: the lateness of the sleep before the spin
+    two_stage: bool  # whether that is the second of two sleeps (see _TWO_STAGE_ABOVE_S) or the only one
+    firsts: array[float]  # the first sleep's lateness, for the choice between one sleep and two
+
+
+#: What was last learned at each *period class* (:func:`_period_class`): how late a timer wakes depends on how
+#: long the machine slept before it. Measured on a 2-core VM, a timerfd woke about 85 µs late at the median and
+#: 180 µs at the 99th percentile after 50 ms of sleep (20 Hz), against 55 and 65 µs after 10 ms (100 Hz). A
+#: waiter starting at a period this process has learned takes over that period's samples and adds its own to
+#: them: a 20 Hz drive restarted after a 100 Hz one does not spin for 100 Hz's latency, and a drive restarted
+#: at the same rate keeps its quantile over a thousand wake-ups instead of starting again from the largest of
+#: its first few dozen (one outlier would set the window).
+_learned: dict[int, _Learned] = {}
 
 
 def _period_class(gap_s: float) -> int:
     """The octave of the time between two deadlines, in microseconds (20 Hz and 100 Hz differ, 20 and 25 Hz
-    do not): the key of :data:`_learned_lateness`."""
+    do not): the key of :data:`_learned`."""
     return int(gap_s * 1e6).bit_length()
 
 
@@ -761,16 +767,14 @@ class DeadlineWaiter:
             return
         self._period_class = cls
         if self._late_n < _LATE_WARMUP:
-            past = _learned_lateness.get(cls)
+            past = _learned.get(cls)
             if past is not None:
-                firsts = _learned_first.get(cls)
-                if firsts is not None and self._first_n < _LATE_WARMUP:  # the first sleeps' too, for the choice
-                    self._first_late = (firsts + self._firsts_oldest_first())[-_FIRST_SAMPLES:]
+                if self._first_n < _LATE_WARMUP:  # the first sleeps' too, for the choice
+                    self._first_late = (past.firsts + self._firsts_oldest_first())[-_FIRST_SAMPLES:]
                     self._first_n = len(self._first_late)
-                two = _learned_two_stage.get(cls, self._two_stage)
-                own = self._late if two == self._two_stage else array("d")  # (samples of the same kind only)
-                self._two_stage = two
-                self._late = samples = (past + own)[-_LATE_SAMPLES:]  # oldest first: the next one replaces [0]
+                own = self._late if past.two_stage == self._two_stage else array("d")  # (of the same kind only)
+                self._two_stage = past.two_stage
+                self._late = samples = (past.late + own)[-_LATE_SAMPLES:]  # oldest first: the next replaces [0]
                 self._late_n = len(samples)
                 self._refresh_window()
 
@@ -792,9 +796,8 @@ class DeadlineWaiter:
         self.spin_window_s = _learned_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
         if self._period_class:
             start = self._late_n % len(samples) if len(samples) == _LATE_SAMPLES else 0
-            _learned_lateness[self._period_class] = samples[start:] + samples[:start]  # a copy, oldest first
-            _learned_two_stage[self._period_class] = self._two_stage
-            _learned_first[self._period_class] = self._firsts_oldest_first()
+            late = samples[start:] + samples[:start]  # a copy, oldest first
+            _learned[self._period_class] = _Learned(late, self._two_stage, self._firsts_oldest_first())
 
     def _firsts_oldest_first(self) -> array[float]:
         firsts = self._first_late

@@ -203,9 +203,7 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 # ---------------------------------------------------------------------------------------------- precise mode
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, monkeypatch):
-    monkeypatch.setattr(clock, "_learned_lateness", {})  # its own samples only, none taken over
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})  # its own samples only, none taken over
     spacing = 0.004
 
     async def main():
@@ -277,9 +275,7 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
 def test_the_report_says_how_many_times_precise_ticks_slept(two, monkeypatch):
     """A drive at a rate where the process learned two sleeps pays off reports 2; where one is enough, 1."""
     cls = clock._period_class(1 / 200)
-    monkeypatch.setattr(clock, "_learned_lateness", {cls: array("d", [100e-6] * 100)})
-    monkeypatch.setattr(clock, "_learned_two_stage", {cls: two})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {cls: clock._Learned(array("d", [100e-6] * 100), two, array("d"))})
 
     class Noop:
         def run(self):
@@ -562,9 +558,7 @@ def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
 def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeypatch):
     """Wake-up latency depends on how long the machine slept: what is learned is kept per period class, and a
     new waiter starts from its own rate's, not from whatever rate learned last."""
-    monkeypatch.setattr(clock, "_learned_lateness", {})
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})
     monkeypatch.setattr(clock, "_learned_window_s", None)
 
     async def learn(spacing_s: float) -> float:
@@ -586,15 +580,15 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
         assert slow_class != fast_class
         # what each rate learned from is kept under its class (the odd offsets of the waits move some gaps a
         # class down; a refresh is stored under the class of the gap it came at)
-        assert len(clock._learned_lateness[slow_class]) >= clock._LATE_WARMUP
+        assert len(clock._learned[slow_class].late) >= clock._LATE_WARMUP
         assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
         # pretend the two rates woke differently late, so which one a new waiter starts from shows
-        clock._learned_lateness[slow_class] = array("d", [300e-6] * 200)
-        clock._learned_lateness[fast_class] = array("d", [100e-6] * 200)
+        clock._learned[slow_class] = clock._Learned(array("d", [300e-6] * 200), True, array("d"))
+        clock._learned[fast_class] = clock._Learned(array("d", [100e-6] * 200), True, array("d"))
         assert await started_at(0.006) == (pytest.approx(300e-6 - clock.PRECISE_TOLERANCE_S), 200)
         assert await started_at(0.0011) == (pytest.approx(100e-6 - clock.PRECISE_TOLERANCE_S), 200)
         unknown = clock._period_class(0.5)
-        assert unknown not in clock._learned_lateness
+        assert unknown not in clock._learned
         assert await started_at(0.5) == (clock._learned_window_s, 0)  # nothing for that rate: the last window
 
     run_on(uvloop.new_event_loop, main())
@@ -603,16 +597,14 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
 def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(monkeypatch):
     """A restarted drive keeps the quantile over the wake-ups before it: its first few dozen, one of them an
     outlier, do not set the window (a fresh waiter's first estimate is the largest of them)."""
-    monkeypatch.setattr(clock, "_learned_lateness", {})
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})
     period = 0.01
     cls = clock._period_class(period)
     typical, outlier = 100e-6, 400e-6
 
     def first_window(past: array | None) -> float:
         if past is not None:
-            clock._learned_lateness[cls] = past
+            clock._learned[cls] = clock._Learned(past, True, array("d"))
         waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
         try:
             waiter._enter_period_class(cls)
@@ -630,20 +622,19 @@ def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(m
     carried = first_window(array("d", [typical] * 1000))
     assert carried == pytest.approx(typical - clock.PRECISE_TOLERANCE_S)
     # and what it learned is stored oldest first, its own samples last, for the next one
-    stored = clock._learned_lateness[cls]
+    stored = clock._learned[cls].late
     assert len(stored) == clock._LATE_SAMPLES and stored[-clock._LATE_WARMUP] == outlier
 
 
 def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
-    monkeypatch.setattr(clock, "_learned_lateness", {})
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})
 
     async def main() -> tuple[float, float]:
         with DeadlineWaiter(precise=True) as waiter:
             await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, 0.0021)
             own = waiter.spin_window_s
-            clock._learned_lateness[clock._period_class(0.04)] = array("d", [own + 0.000_2] * 200)  # another rate's
+            another_rate = clock._Learned(array("d", [own + 0.000_2] * 200), waiter._two_stage, array("d"))
+            clock._learned[clock._period_class(0.04)] = another_rate
             t = time.monotonic()
             for k in (1, 2):  # two deadlines 40 ms apart: a new class
                 await waiter.wait_until(t + 0.04 * k)
@@ -657,9 +648,7 @@ def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice
     """The first sleep's lateness decides: a 99th percentile close to the median (a busy machine, a small board)
     means one sleep is enough and the window is learned from that sleep; a long tail (an idle virtual machine)
     means two, with the window of the second sleep, as learned the last time this waiter slept twice."""
-    monkeypatch.setattr(clock, "_learned_lateness", {})
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})
     waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
 
     def first_sleeps(lateness: list[float]) -> None:
@@ -785,13 +774,10 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
     early. A series too fast for a guard sleeps once per deadline, and so does one at a rate where this process
     learned that one sleep is enough (the window then from those samples)."""
     monkeypatch.setattr(clock, "_learned_window_s", None)  # the start window throughout (no refresh in 20 waits)
-    monkeypatch.setattr(clock, "_learned_lateness", {})
-    monkeypatch.setattr(clock, "_learned_two_stage", {})
-    monkeypatch.setattr(clock, "_learned_first", {})
+    monkeypatch.setattr(clock, "_learned", {})
     if learned_once:
         cls = clock._period_class(period)
-        clock._learned_lateness[cls] = array("d", [150e-6] * 100)
-        clock._learned_two_stage[cls] = False
+        clock._learned[cls] = clock._Learned(array("d", [150e-6] * 100), False, array("d"))
     n = 20
 
     async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], float, float]:

@@ -201,13 +201,19 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 
 
 # ---------------------------------------------------------------------------------------------- precise mode
+@pytest.mark.parametrize("sleeps", [1, 2])
 @pytest.mark.parametrize("loop_factory", LOOPS)
-def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, monkeypatch):
+def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, sleeps, monkeypatch):
     monkeypatch.setattr(clock, "_learned", {})  # its own samples only, none taken over
+    # one sleep or two throughout, whatever this machine's wake-ups do: a switch swaps the window's samples
+    # (tested on its own below)
+    monkeypatch.setattr(clock, "_TWO_STAGE_ABOVE_S", math.inf)
+    monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
     spacing = 0.004
 
     async def main():
         with DeadlineWaiter(precise=True) as waiter:
+            waiter._two_stage = sleeps == 2
             start_window = waiter.spin_window_s
             late = await _lateness_of_waits(waiter, 100, spacing)
             assert min(late) >= 0.0
@@ -220,6 +226,7 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
             expected = min(max(q - clock.PRECISE_TOLERANCE_S, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
             assert waiter.spin_window_s == pytest.approx(expected)
             assert waiter.spin_window_s != start_window or expected == start_window
+            assert waiter.sleeps == (sleeps if waiter.mode == "timerfd" else 1)
             return late
 
     run_on(loop_factory, main())
@@ -560,6 +567,8 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
     new waiter starts from its own rate's, not from whatever rate learned last."""
     monkeypatch.setattr(clock, "_learned", {})
     monkeypatch.setattr(clock, "_learned_window_s", None)
+    # two sleeps throughout: a switch to one would start the window's samples afresh from the first sleep's
+    monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
 
     async def learn(spacing_s: float) -> float:
         with DeadlineWaiter(precise=True) as waiter:

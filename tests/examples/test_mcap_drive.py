@@ -10,6 +10,7 @@ import io
 import json
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -64,6 +65,27 @@ def test_replay_from_mcap_equals_replay_from_the_tub_of_the_same_drive(drive):
         assert (a.index, a.at_s, a.user_angle, a.user_throttle) == (b.index, b.at_s, b.user_angle, b.user_throttle)
         assert (a.pilot_angle, a.pilot_throttle) == (b.pilot_angle, b.pilot_throttle)  # the very same pixels
     assert from_tub.angle_mae == from_mcap.angle_mae
+
+
+def test_simulated_ticks_read_back_whole_milliseconds_apart_whatever_the_wall_clock(tmp_path, monkeypatch):
+    """On the virtual clock, ticks 50 ms apart read back 50 ms apart from the tub and from the MCAP, also when
+    the wall clock at the first record stands half a millisecond past a whole one: the edge where rounding
+    the anchor plus the tick's time made steps of 49 and 51 ms, by float error."""
+    real_ns = time.time_ns
+
+    def half_past_ns() -> int:
+        return real_ns() // 1_000_000 * 1_000_000 + 500_000
+
+    monkeypatch.setattr(time, "time_ns", half_past_ns)
+    monkeypatch.setattr(time, "time", lambda: half_past_ns() / 1e9)
+    tub, mcap = tmp_path / "tub", tmp_path / "drive.mcap"
+    v, _ = car_py.make_car(pilot="user", record=tub, mcap=mcap, seconds=2.0, status=None)
+    with asyncio.Runner(loop_factory=VirtualClockLoop) as runner:
+        runner.run(v.run(rate_hz=20, max_loop_count=1000))
+    for source in (tub, mcap):
+        stamps = [r.timestamp_ms for r in replay(source, red_green_pilot).rows]
+        assert len(stamps) > 30
+        assert set(np.diff(stamps).tolist()) == {50}, source
 
 
 def test_the_replay_command_takes_an_mcap_file_and_a_model(drive, tmp_path):

@@ -162,14 +162,17 @@ class BackgroundWriter:
 
     def _resolve_now(self) -> float:
         """Pick the timestamp source on the first record (the loop is only known once the car runs): wall-clock
-        seconds, or on a virtual-clock loop the wall time at the first record advanced by virtual time."""
+        seconds, or on a virtual-clock loop the wall time at the first record advanced by virtual time. That
+        wall time is taken to the whole millisecond: a record's millisecond timestamp then rounds its virtual
+        time alone, the same way run after run (an anchor half a millisecond off would round ticks 50 ms apart
+        to 49 and 51 by float error)."""
         try:
             clock = get_clock(asyncio.get_running_loop())
         except RuntimeError:
             clock = None
         if clock is not None and clock.is_virtual:
             vnow = clock.now
-            wall0, v0 = time.time(), vnow()
+            wall0, v0 = time.time_ns() // 1_000_000 / 1000, vnow()
             self._now = self._on_virtual_time(lambda: wall0 + (vnow() - v0))
         else:
             self._now = time.time

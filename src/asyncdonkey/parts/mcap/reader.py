@@ -275,7 +275,7 @@ class McapTub:
         log_ns, image = pending
         raw = dict(latest)
         raw[self.image_key] = f"{index}_{self.image_key.replace('/', '_')}.jpg"
-        raw["_timestamp_ms"] = round(log_ns / 1e6)
+        raw["_timestamp_ms"] = (log_ns + 500_000) // 1_000_000  # in integers: a float has no nanoseconds left
         raw["_index"] = index
         return McapRecord(raw, {self.image_key: image})
 

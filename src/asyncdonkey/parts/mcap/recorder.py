@@ -43,7 +43,9 @@ class TickRecorder(BackgroundWriter):
     _timing: bool
 
     def _first_time(self) -> float:
-        """Anchor the runtime clock to the wall clock on the first record (the loop is known only then)."""
+        """Anchor the runtime clock to the wall clock on the first record (the loop is known only then); on the
+        virtual clock to a whole millisecond of it, as the tub writer does, so that simulated ticks keep their
+        millisecond steps when read back."""
         try:
             clock = get_clock()
         except RuntimeError:  # called outside an event loop (a script driving run() itself)
@@ -51,7 +53,10 @@ class TickRecorder(BackgroundWriter):
         now = clock.now if clock is not None else time.monotonic
         virtual = clock is not None and clock.is_virtual
         t = now()
-        self._sink.times = TimeMap(t, time.time_ns(), "virtual" if virtual else "monotonic")
+        wall_ns = time.time_ns()
+        if virtual:
+            wall_ns -= wall_ns % 1_000_000
+        self._sink.times = TimeMap(t, wall_ns, "virtual" if virtual else "monotonic")
         self._now = self._on_virtual_time(now) if virtual else now
         return t
 

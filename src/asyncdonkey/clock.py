@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import heapq
 import logging
 import math
@@ -65,7 +66,10 @@ __all__ = [
     "Clock",
     "DeadlineWaiter",
     "Schedule",
+    "TickGrid",
     "get_clock",
+    "grid_start",
+    "tick_grid",
 ]
 
 logger = logging.getLogger(__name__)
@@ -74,6 +78,42 @@ logger = logging.getLogger(__name__)
 TIME_EPS = 1e-9
 #: In periods: a deadline this close to ``now`` counts as passed when working out how far behind a tick is.
 TICK_EPS = 1e-6
+
+
+class TickGrid(NamedTuple):
+    """A drive's deadlines: ``origin + k * period`` on the runtime clock (``origin`` is its first tick's)."""
+
+    origin: float
+    period: float
+
+
+#: The grid of the drive whose background work this is: set by the drive around the creation of its parts'
+#: ``update()`` tasks, which copy it with the rest of their context (so two drives on one loop each have
+#: their own, and code outside a drive sees None).
+_TICK_GRID: contextvars.ContextVar[TickGrid | None] = contextvars.ContextVar("asyncdonkey_tick_grid", default=None)
+
+
+def tick_grid() -> TickGrid | None:
+    """The tick grid of the drive this code runs under (in a part's ``update()`` task), or None."""
+    return _TICK_GRID.get()
+
+
+def grid_start(grid: TickGrid | None, rate_hz: float, now: float, lead_s: float = 0.0) -> float:
+    """The first deadline of a schedule of ``rate_hz`` started at ``now``: on ``grid`` (a drive's ticks, see
+    :func:`tick_grid`), ``lead_s`` before it, at the first such point not before ``now``; without a grid,
+    ``now`` itself.
+
+    Phase-locked to the ticks, a background schedule whose period divides the drive's (or is a multiple of it)
+    has deadlines that fall on tick deadlines, and the machine wakes once for both instead of twice: on a
+    2-core VM a 60 Hz poller beside a 20 Hz drive cost 10-15 % less CPU a tenth of a millisecond ahead of the
+    ticks than half a poll period off them. The lead also has a quick read published before the tick that
+    shares its deadline, instead of racing it: the tick gets a sample a fraction of a millisecond old.
+    """
+    if grid is None:
+        return now
+    period = 1.0 / rate_hz
+    origin = grid.origin - lead_s
+    return origin + math.ceil((now - origin) / period - TICK_EPS) * period
 
 
 class Schedule:

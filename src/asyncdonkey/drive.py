@@ -20,7 +20,7 @@ import threading
 from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
-from .clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule
+from .clock import _TICK_GRID, SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
 from .errors import PartError
 from .memory import Memory
 from .pipeline import Reaction, after_store, build_pipelines
@@ -36,6 +36,11 @@ if TYPE_CHECKING:
 __all__ = ["Drive"]
 
 logger = logging.getLogger("asyncdonkey.loop")
+
+#: On the real clock the first tick is due this long after the drive starts its background work: the parts'
+#: tasks and threads start in between, and a :class:`~asyncdonkey.poller.Poller` reads its first sample on the
+#: tick grid just before the first tick, which then has it (on the virtual clock the first tick is at once).
+START_MARGIN_S = 0.005
 
 #: Float noise in time arithmetic (0.4 + 0.2 = 0.6000000000000001) is not an overrun.
 _TIME_EPS = 1e-9
@@ -86,6 +91,8 @@ class Drive:
         self._grace_cancel = False
         self.task: asyncio.Task[Any] | None = None
         # counters (attributes, so any ending can fill the report)
+        #: the first tick's deadline (None: at once), fixed by start_background()
+        self.t0: float | None = None
         self.loops = 0
         self.overruns = 0
         self.skipped = 0
@@ -151,7 +158,18 @@ class Drive:
             task.cancel()
 
     # ------------------------------------------------------------------------------------- background
-    def start_background(self) -> None:
+    def start_background(self, rate_hz: float) -> None:
+        """Fix the first tick's deadline (:attr:`t0`) and start the parts' background work, whose ``update()``
+        tasks see the drive's ticks as :func:`~asyncdonkey.clock.tick_grid` (a
+        :class:`~asyncdonkey.poller.Poller` reads on them)."""
+        self.t0 = t0 = self.clock.now() + (0.0 if self.clock.is_virtual else START_MARGIN_S)
+        token = _TICK_GRID.set(TickGrid(t0, 1.0 / rate_hz))
+        try:
+            self._start_background()
+        finally:
+            _TICK_GRID.reset(token)
+
+    def _start_background(self) -> None:
         for p in self.pipelines:
             p.task = self.loop.create_task(p.main(), name=f"pipelined:{p.name}")
             self.tasks.append((p.entry, p.task))
@@ -296,7 +314,8 @@ class Drive:
         report_block = self._report_block
         jitter_log = LogThrottle(1.0)
         nan = math.nan
-        t0 = end = now()
+        end = now()
+        t0 = end if self.t0 is None else self.t0
         self.first_start = self.last_start = self.last_end = t0
         sched = Schedule(rate_hz, t0)
         period = sched.period

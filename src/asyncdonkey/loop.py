@@ -319,7 +319,7 @@ class Vehicle:
         outcome: BaseException | None = None
         try:
             self._attach_actuators(drive)
-            drive.start_background()
+            drive.start_background(float(rate_hz))
             await drive.tick_loop(float(rate_hz), max_loop_count, duration, verbose, report_every)
         except BaseException as exc:
             outcome = exc

@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-from .clock import TIME_EPS, Clock, DeadlineWaiter, Schedule, get_clock
+from .clock import TIME_EPS, Clock, DeadlineWaiter, Schedule, TickGrid, get_clock, grid_start, tick_grid
 from .latest import Latest, Sample, _new_sample
 from .ratelimit import LogThrottle
 
@@ -57,6 +57,12 @@ STOP_CHECK_S = 0.1
 #: to check. Elsewhere it does check.
 _SLEEP_UNTIL_MONOTONIC = bool(sysconfig.get_config_var("HAVE_CLOCK_NANOSLEEP"))
 
+#: In a drive, a poller reads on the drive's tick grid, this long before the ticks its deadlines share (see
+#: :func:`~asyncdonkey.clock.grid_start`): long enough for a quick read to be published before the tick starts,
+#: short enough that the machine is still awake from the read when the tick's timer fires. Measured on a
+#: 2-core VM with a 60 Hz poller beside a 20 Hz drive, 0.1 ms cost the least CPU of 0 to 0.5 ms.
+POLL_LEAD_S = 1e-4
+
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
@@ -69,6 +75,8 @@ class Poller(Generic[T]):
     * A read that raises is counted in ``.errors`` and logged at most once per second; polling goes on.
     * Each poller owns one worker thread (named ``poll:<name>``), so a slow device cannot starve other
       executor users.
+    * In a drive it reads on the drive's ticks, :data:`POLL_LEAD_S` ahead of those its deadlines share: the
+      machine wakes once for both, and a quick read is in the tick (see :func:`~asyncdonkey.clock.grid_start`).
     """
 
     def __init__(self, read: Callable[[], T], rate_hz: float, name: str | None = None) -> None:
@@ -126,8 +134,9 @@ class Poller(Generic[T]):
     # ------------------------------------------------------------------------------ real loop: a thread
     async def _poll_in_thread(self, loop: asyncio.AbstractEventLoop, clock: Clock) -> None:
         done: asyncio.Future[None] = loop.create_future()
+        grid = tick_grid()  # (read in this task: a thread does not see the task's context)
         thread = threading.Thread(
-            target=self._thread_main, args=(clock, loop, done), name=f"poll:{self.name}", daemon=True
+            target=self._thread_main, args=(clock, loop, done, grid), name=f"poll:{self.name}", daemon=True
         )
         thread.start()
         try:
@@ -135,16 +144,24 @@ class Poller(Generic[T]):
         finally:
             self.shutdown()  # cancelled: the thread ends after its current read
 
-    def _thread_main(self, clock: Clock, loop: asyncio.AbstractEventLoop, done: asyncio.Future[None]) -> None:
+    def _thread_main(
+        self, clock: Clock, loop: asyncio.AbstractEventLoop, done: asyncio.Future[None], grid: TickGrid | None
+    ) -> None:
         now = clock.now
         try:
-            self._poll_blocking(now, time.sleep, recheck=not (_SLEEP_UNTIL_MONOTONIC and now is time.monotonic))
+            recheck = not (_SLEEP_UNTIL_MONOTONIC and now is time.monotonic)
+            self._poll_blocking(now, time.sleep, recheck, grid)
         finally:
             with contextlib.suppress(RuntimeError):  # the loop is already closed: nobody is waiting
                 loop.call_soon_threadsafe(_set_done, done)
 
-    def _poll_blocking(self, now: Callable[[], float], sleep: Callable[[float], object], recheck: bool) -> None:
+    def _poll_blocking(
+        self, now: Callable[[], float], sleep: Callable[[float], object], recheck: bool, grid: TickGrid | None = None
+    ) -> None:
         """The poller thread's loop, until :meth:`shutdown`: ``sleep(seconds)`` blocks, ``now()`` reads the clock.
+
+        ``grid``: the drive's ticks; the first read is then on it, :data:`POLL_LEAD_S` ahead of the next point
+        that falls on it (see :func:`~asyncdonkey.clock.grid_start`), else at once.
 
         ``recheck``: read the clock after every sleep and sleep again if it woke before the deadline (needed
         unless ``sleep`` is known never to return early, see :data:`_SLEEP_UNTIL_MONOTONIC`).
@@ -159,10 +176,11 @@ class Poller(Generic[T]):
         seq = 0 if prev is None else prev.seq  # a restarted poller goes on numbering its samples
         read = self.read
         new_sample, sample_type, stop_check = _new_sample, Sample, STOP_CHECK_S  # locals: no globals touched
-        sched = Schedule(self.rate_hz, now())
+        t = now()
+        sched = Schedule(self.rate_hz, grid_start(grid, self.rate_hz, t, POLL_LEAD_S))
         t0, rate, k = sched.t0, sched.rate_hz, sched.k
         behind = sched.period + TIME_EPS  # Schedule.advance's test for "more than a period behind"
-        deadline = t = sched.deadline
+        deadline = sched.deadline
         while True:
             left = deadline - t
             if left > 0.0:  # sleeps at least the time left: never early (a float constant: the fast compare)
@@ -207,7 +225,7 @@ class Poller(Generic[T]):
         now = clock.now
         executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"poll:{self.name}")
         waiter = DeadlineWaiter(loop)
-        sched = Schedule(self.rate_hz, now())
+        sched = Schedule(self.rate_hz, grid_start(tick_grid(), self.rate_hz, now()))  # (no lead: time stands still)
         try:
             while self._running:
                 deadline = sched.deadline

@@ -1,0 +1,192 @@
+"""Background schedules on the drive's tick grid: a drive makes its ticks (``t0 + k / rate_hz``) known to its parts'
+``update()`` tasks, and a :class:`Poller` reads on them, a little ahead, so that the machine wakes once for a
+tick and the sample due with it, and the tick has that sample."""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import threading
+import time
+
+import pytest
+import uvloop
+
+from asyncdonkey import Poller, Vehicle
+from asyncdonkey.clock import TickGrid, grid_start, tick_grid
+from asyncdonkey.drive import START_MARGIN_S
+from asyncdonkey.poller import POLL_LEAD_S
+from asyncdonkey.testing import VirtualClockLoop
+
+
+# ------------------------------------------------------------------------------------------- grid_start
+def test_without_a_grid_a_schedule_starts_now():
+    assert grid_start(None, 60, 12.345, lead_s=1e-4) == 12.345
+
+
+@pytest.mark.parametrize(
+    ("now", "lead_s", "expected"),
+    [
+        (9.995, 0.0, 10.0),  # before the first tick: the first tick itself
+        (10.0, 0.0, 10.0),  # on a point: that point
+        (10.001, 0.0, 10.0 + 1 / 60),  # just past one: the next
+        (10.3, 0.0, 10.0 + 18 / 60),  # later on: the next point of the poller's own rate, on the ticks' grid
+        (9.995, 1e-4, 10.0 - 1e-4),  # ahead of the ticks by the lead
+        (10.0, 1e-4, 10.0 - 1e-4 + 1 / 60),  # the lead's point has passed: the next one
+    ],
+)
+def test_a_schedule_starts_at_the_first_grid_point_not_before_now(now, lead_s, expected):
+    grid = TickGrid(origin=10.0, period=0.05)
+    assert grid_start(grid, 60, now, lead_s) == pytest.approx(expected, abs=1e-12)
+    assert grid_start(grid, 60, now, lead_s) >= now - 1e-9
+
+
+def test_its_points_fall_on_the_ticks_where_the_rates_share_them():
+    grid = TickGrid(origin=100.0, period=0.05)  # a 20 Hz drive
+    start = grid_start(grid, 60, 100.0)  # a 60 Hz schedule: every third point is a tick
+    for j in range(0, 300, 3):
+        k = j // 3
+        assert start + j / 60 == pytest.approx(grid.origin + k * grid.period, abs=1e-9)
+
+
+# --------------------------------------------------------------------------------- the drive's grid
+def test_a_drives_update_tasks_see_its_grid_and_nothing_else_does():
+    seen: dict[str, TickGrid | None] = {}
+
+    class Background:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        async def update(self) -> None:
+            seen[self.name] = tick_grid()
+
+        def run_threaded(self) -> None:
+            return None
+
+    async def main() -> tuple[float, float]:
+        fast, slow = Vehicle(), Vehicle()
+        fast.add(Background("fast"), threaded=True)
+        slow.add(Background("slow"), threaded=True)
+        first: dict[str, float] = {}
+
+        class Stamp:
+            def __init__(self, name: str) -> None:
+                self.name = name
+
+            def run(self) -> None:
+                first.setdefault(self.name, asyncio.get_running_loop().time())
+
+        fast.add(Stamp("fast"))
+        slow.add(Stamp("slow"))
+        await asyncio.gather(fast.run(rate_hz=50, max_loop_count=3), slow.run(rate_hz=10, max_loop_count=3))
+        assert tick_grid() is None  # outside the drives
+        return first["fast"], first["slow"]
+
+    with asyncio.Runner(loop_factory=VirtualClockLoop) as runner:
+        fast_t0, slow_t0 = runner.run(main())
+    assert seen == {"fast": TickGrid(fast_t0, 1 / 50), "slow": TickGrid(slow_t0, 1 / 10)}  # each its own drive's
+
+
+def test_on_the_virtual_clock_the_first_tick_is_at_once_and_a_poller_reads_on_its_grid():
+    stamps: list[float] = []
+    ticks: list[float] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        t_start = loop.time()
+
+        def read() -> int:
+            stamps.append(loop.time())
+            return len(stamps)
+
+        class Stamp:
+            def run(self) -> None:
+                ticks.append(loop.time())
+
+        v = Vehicle()
+        v.add(Stamp())
+        v.add(Poller(read, rate_hz=60, name="imu"), outputs=["imu"])
+        await v.run(rate_hz=20, max_loop_count=21)
+        assert ticks[0] == t_start  # no start margin: virtual time stands still while the drive starts
+
+    with asyncio.Runner(loop_factory=VirtualClockLoop) as runner:
+        runner.run(main())
+    assert stamps[:60:3] == pytest.approx(ticks[:20], abs=1e-12)  # every third read is due with a tick
+
+
+# ------------------------------------------------------------------------------ the poller's thread
+class ModelTime:
+    """The poller thread's clock and sleep, moving only when it sleeps."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def test_the_poller_thread_reads_on_the_grid_ahead_of_the_ticks_by_its_lead():
+    clock = ModelTime(100.0)
+    grid = TickGrid(origin=100.0 + START_MARGIN_S, period=0.05)  # a 20 Hz drive's first tick, still to come
+    starts: list[float] = []
+
+    def read() -> int:
+        starts.append(clock.t)
+        if len(starts) == 30:
+            poller.shutdown()
+        return len(starts)
+
+    poller = Poller(read, rate_hz=60)
+    poller._running = True
+    poller._poll_blocking(clock.now, clock.sleep, False, grid)
+    first = grid.origin - POLL_LEAD_S
+    assert starts == pytest.approx([first + j / 60 for j in range(30)], abs=1e-9)  # the first before the first tick
+    assert starts[::3] == pytest.approx([grid.origin - POLL_LEAD_S + k * grid.period for k in range(10)], abs=1e-9)
+    assert poller.skipped == 0
+
+
+def test_on_a_real_loop_the_first_tick_waits_the_start_margin_and_the_poller_reads_on_its_grid():
+    """Real time on a possibly busy machine: only what it can guarantee. The first tick is never before the drive's
+    t0, reads are never before their grid point, and most are within a couple of milliseconds of it."""
+    reads: list[float] = []
+    threads: set[str] = set()
+    ticks: list[float] = []
+
+    def read() -> int:
+        reads.append(time.monotonic())
+        threads.add(threading.current_thread().name)
+        return len(reads)
+
+    class Stamp:
+        def run(self) -> None:
+            ticks.append(time.monotonic())
+
+    async def main() -> float:
+        v = Vehicle()
+        v.add(Stamp())
+        v.add(Poller(read, rate_hz=60, name="imu"), outputs=["imu"])
+        started = time.monotonic()
+        task = asyncio.create_task(v.run(rate_hz=20, max_loop_count=20))
+        await asyncio.sleep(0)  # the drive has started its background work and fixed its first tick
+        t0 = v.drive.t0
+        assert t0 is not None and started + START_MARGIN_S <= t0 <= time.monotonic() + START_MARGIN_S
+        await task
+        return t0
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        t0 = runner.run(main())
+    assert threads == {"poll:imu"}
+    assert ticks[0] >= t0
+    origin = t0 - POLL_LEAD_S
+    offsets = []
+    for t in reads:
+        j = round((t - origin) * 60)
+        if (t - origin) * 60 < j:  # (after the grid point's own rounding: a read is never before its point)
+            j -= 1
+        assert t >= origin + j / 60 - 1e-9
+        offsets.append(t - (origin + j / 60))
+    assert reads[0] >= origin - 1e-9
+    assert statistics.median(offsets) < 2e-3

@@ -81,10 +81,15 @@ TICK_EPS = 1e-6
 
 
 class TickGrid(NamedTuple):
-    """A drive's deadlines: ``origin + k * period`` on the runtime clock (``origin`` is its first tick's)."""
+    """A drive's deadlines: ``origin + k * period`` on the runtime clock (``origin`` is its first tick's).
+
+    ``spin_s``: how long before each deadline the drive's thread may spin (precise mode; 0 otherwise), holding
+    the interpreter: a read in another thread that is due inside it is published only after the tick.
+    """
 
     origin: float
     period: float
+    spin_s: float = 0.0
 
 
 #: The grid of the drive whose background work this is: set by the drive around the creation of its parts'
@@ -859,6 +864,11 @@ class DeadlineWaiter:
         self._other_late = current
         self._late_n = len(self._late)
         self._two_stage = two
+
+    def max_spin_s(self, period: float) -> float:
+        """The longest this waiter spins before a deadline when deadlines are ``period`` apart: precise mode's
+        window at its ceiling or its budget, whichever is less (0 outside precise mode)."""
+        return min(_WINDOW_CEIL_S, SPIN_BUDGET * period) if self.precise else 0.0
 
     @property
     def sleeps(self) -> int:

@@ -163,7 +163,8 @@ class Drive:
         tasks see the drive's ticks as :func:`~asyncdonkey.clock.tick_grid` (a
         :class:`~asyncdonkey.poller.Poller` reads on them)."""
         self.t0 = t0 = self.clock.now() + (0.0 if self.clock.is_virtual else START_MARGIN_S)
-        token = _TICK_GRID.set(TickGrid(t0, 1.0 / rate_hz))
+        period = 1.0 / rate_hz
+        token = _TICK_GRID.set(TickGrid(t0, period, self.waiter.max_spin_s(period)))
         try:
             self._start_background()
         finally:

@@ -60,7 +60,9 @@ _SLEEP_UNTIL_MONOTONIC = bool(sysconfig.get_config_var("HAVE_CLOCK_NANOSLEEP"))
 #: In a drive, a poller reads on the drive's tick grid, this long before the ticks its deadlines share (see
 #: :func:`~asyncdonkey.clock.grid_start`): long enough for a quick read to be published before the tick starts,
 #: short enough that the machine is still awake from the read when the tick's timer fires. Measured on a
-#: 2-core VM with a 60 Hz poller beside a 20 Hz drive, 0.1 ms cost the least CPU of 0 to 0.5 ms.
+#: 2-core VM with a 60 Hz poller beside a 20 Hz drive, 0.1 ms cost the least CPU of 0 to 0.5 ms. Beside a
+#: drive in precise mode the lead is longer by the drive's longest spin (:attr:`TickGrid.spin_s
+#: <asyncdonkey.clock.TickGrid.spin_s>`): a read due inside the spin would wait for the tick to end.
 POLL_LEAD_S = 1e-4
 
 logger = logging.getLogger(__name__)
@@ -177,7 +179,8 @@ class Poller(Generic[T]):
         read = self.read
         new_sample, sample_type, stop_check = _new_sample, Sample, STOP_CHECK_S  # locals: no globals touched
         t = now()
-        sched = Schedule(self.rate_hz, grid_start(grid, self.rate_hz, t, POLL_LEAD_S))
+        lead = POLL_LEAD_S if grid is None else POLL_LEAD_S + grid.spin_s  # (ahead of a precise drive's spin)
+        sched = Schedule(self.rate_hz, grid_start(grid, self.rate_hz, t, lead))
         t0, rate, k = sched.t0, sched.rate_hz, sched.k
         behind = sched.period + TIME_EPS  # Schedule.advance's test for "more than a period behind"
         deadline = sched.deadline

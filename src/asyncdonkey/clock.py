@@ -110,8 +110,8 @@ def grid_start(grid: TickGrid | None, rate_hz: float, now: float, lead_s: float 
 
     Phase-locked to the ticks, a background schedule whose period divides the drive's (or is a multiple of it)
     has deadlines that fall on tick deadlines, and the machine wakes once for both instead of twice: on a
-    2-core VM a 60 Hz poller beside a 20 Hz drive cost 10-15 % less CPU a tenth of a millisecond ahead of the
-    ticks than half a poll period off them. The lead also has a quick read published before the tick that
+    2-core VM a 60 Hz poller beside a 20 Hz drive cost 10-15 % less CPU a fraction of a millisecond ahead of
+    the ticks than half a poll period off them. The lead also has a quick read published before the tick that
     shares its deadline, instead of racing it: the tick gets a sample a fraction of a millisecond old.
     """
     if grid is None:

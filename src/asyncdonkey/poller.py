@@ -41,6 +41,7 @@ import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
+from ._timerslack import exact_sleeps
 from .clock import TIME_EPS, Clock, DeadlineWaiter, Schedule, TickGrid, get_clock, grid_start, tick_grid
 from .latest import Latest, Sample, _new_sample
 from .ratelimit import LogThrottle
@@ -58,12 +59,14 @@ STOP_CHECK_S = 0.1
 _SLEEP_UNTIL_MONOTONIC = bool(sysconfig.get_config_var("HAVE_CLOCK_NANOSLEEP"))
 
 #: In a drive, a poller reads on the drive's tick grid, this long before the ticks its deadlines share (see
-#: :func:`~asyncdonkey.clock.grid_start`): long enough for a quick read to be published before the tick starts,
-#: short enough that the machine is still awake from the read when the tick's timer fires. Measured on a
-#: 2-core VM with a 60 Hz poller beside a 20 Hz drive, 0.1 ms cost the least CPU of 0 to 0.5 ms. Beside a
+#: :func:`~asyncdonkey.clock.grid_start`): long enough for a quick read to be published before the tick starts
+#: (the thread's wake-up is as late as the tick's, give or take some tens of microseconds), short enough that
+#: the machine is still awake from the read when the tick's timer fires. Measured on a 2-core VM with a 60 Hz
+#: poller beside a 20 Hz drive, leads of 0.1 to 0.3 ms cost the same CPU within the noise, and less than 0.5 ms
+#: or half a poll period; at 0.1 ms, in a phase of late wake-ups, most ticks of one run lost the race. Beside a
 #: drive in precise mode the lead is longer by the drive's longest spin (:attr:`TickGrid.spin_s
 #: <asyncdonkey.clock.TickGrid.spin_s>`): a read due inside the spin would wait for the tick to end.
-POLL_LEAD_S = 1e-4
+POLL_LEAD_S = 2e-4
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -151,6 +154,7 @@ class Poller(Generic[T]):
     ) -> None:
         now = clock.now
         try:
+            exact_sleeps()  # wake on the deadline, as the drive's timerfd does, not up to 50 µs after it
             recheck = not (_SLEEP_UNTIL_MONOTONIC and now is time.monotonic)
             self._poll_blocking(now, time.sleep, recheck, grid)
         finally:

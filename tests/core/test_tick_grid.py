@@ -5,7 +5,9 @@ tick and the sample due with it, and the tick has that sample."""
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import statistics
+import sys
 import threading
 import time
 
@@ -199,7 +201,9 @@ def test_on_a_real_loop_every_tick_has_the_sample_read_just_before_it(precise):
     """A 60 Hz poller beside a 20 Hz drive reads just ahead of every tick, so each tick has a sample a fraction
     of a millisecond old, not one from the read before (a poll period, 16.7 ms). In precise mode the reads are
     ahead of the drive's spin too: one due inside it would be published only after the tick. Real time: the
-    median over the drive, which a busy machine's odd late wake-up cannot move."""
+    fraction of fresh ticks, which a busy machine's odd late wake-up does not decide: with the poller at a random
+    phase about an eighth of the ticks would have a sample that young, and in precise mode without the spin's
+    lead none."""
     ages: list[float] = []
 
     class Age:
@@ -217,4 +221,28 @@ def test_on_a_real_loop_every_tick_has_the_sample_read_just_before_it(precise):
         runner.run(main())
     assert len(ages) >= 39  # the first tick already has the first read
     lead = POLL_LEAD_S + (min(0.5e-3, 0.03 * 0.05) if precise else 0.0)
-    assert statistics.median(ages) < lead + 2e-3
+    fresh = sum(age < lead + 2e-3 for age in ages)
+    assert fresh >= len(ages) / 2, sorted(ages)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is Linux's")
+def test_the_poller_thread_sleeps_without_timer_slack():
+    """Its sleeps end on their deadlines, as the drive's timerfd does, not up to 50 µs later (the default slack,
+    which the thread that starts it keeps)."""
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    pr_get_timerslack = 30  # the calling thread's slack, in ns, as the return value
+    slack: list[int] = []
+
+    def read() -> int:
+        slack.append(prctl(pr_get_timerslack, 0, 0, 0, 0))
+        return 0
+
+    async def main() -> None:
+        v = Vehicle()
+        v.add(Poller(read, rate_hz=100, name="slack"), outputs=["x"])
+        await v.run(rate_hz=20, max_loop_count=3)
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        runner.run(main())
+    assert prctl(pr_get_timerslack, 0, 0, 0, 0) > 1  # the test's own thread keeps its slack
+    assert slack and set(slack) == {1}

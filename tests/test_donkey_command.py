@@ -72,8 +72,11 @@ tornado.web.Application.listen = _loopback_listen
 """
 
 
-async def drive_through_the_web_page(port: int, proc: subprocess.Popen, command: dict, timeout: float) -> None:
-    """Send ``command`` on the car's /wsDrive websocket (what its browser page does) once the server is up."""
+async def drive_through_the_web_page(
+    port: int, proc: subprocess.Popen, command: dict, timeout: float, after_s: float = 0.0
+) -> None:
+    """Send ``command`` on the car's /wsDrive websocket (what its browser page does) ``after_s`` seconds after
+    the server accepted the connection."""
     deadline = time.monotonic() + timeout
     while True:
         if proc.poll() is not None:
@@ -85,6 +88,7 @@ async def drive_through_the_web_page(port: int, proc: subprocess.Popen, command:
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.05)
+    await asyncio.sleep(after_s)
     await ws.write_message(json.dumps(command))
     await asyncio.sleep(0.2)  # let the server read it before the socket closes
     ws.close()
@@ -119,7 +123,9 @@ def test_a_donkeycar_car_drives_unchanged_with_one_command(tmp_path):
     )
     try:
         command = {"angle": 0.25, "throttle": 0.3, "drive_mode": "user", "recording": True}
-        asyncio.run(drive_through_the_web_page(port, proc, command, timeout=20))
+        # half a second into the car's two: its ticks have started by then (the web server's thread starts
+        # just before them, and a command read before the first tick would record from the first loop)
+        asyncio.run(drive_through_the_web_page(port, proc, command, timeout=20, after_s=0.5))
         out, _ = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:

@@ -211,6 +211,13 @@ class _Learned(NamedTuple):
 _learned: dict[int, _Learned] = {}
 
 
+def _oldest_first(ring: array[float], n: int, size: int) -> array[float]:
+    """A copy of a ring of at most ``size`` samples that ``n`` samples have been written to (appended until it
+    is full, then each over the oldest, at ``n % size``), oldest first."""
+    start = n % size if len(ring) == size else 0
+    return ring[start:] + ring[:start]
+
+
 def _period_class(gap_s: float) -> int:
     """The octave of the time between two deadlines, in microseconds (20 Hz and 100 Hz differ, 20 and 25 Hz
     do not): the key of :data:`_learned`."""
@@ -840,14 +847,11 @@ class DeadlineWaiter:
         global _learned_window_s
         self.spin_window_s = _learned_window_s = min(max(q - PRECISE_TOLERANCE_S, _WINDOW_FLOOR_S), _WINDOW_CEIL_S)
         if self._period_class:
-            start = self._late_n % len(samples) if len(samples) == _LATE_SAMPLES else 0
-            late = samples[start:] + samples[:start]  # a copy, oldest first
+            late = _oldest_first(samples, self._late_n, _LATE_SAMPLES)
             _learned[self._period_class] = _Learned(late, self._two_stage, self._firsts_oldest_first())
 
     def _firsts_oldest_first(self) -> array[float]:
-        firsts = self._first_late
-        start = self._first_n % len(firsts) if len(firsts) == _FIRST_SAMPLES else 0
-        return firsts[start:] + firsts[:start]
+        return _oldest_first(self._first_late, self._first_n, _FIRST_SAMPLES)
 
     def _switch_stages(self) -> None:
         """From two sleeps to one or back. The window's samples change kind with it, to those of the last time

@@ -10,8 +10,9 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from asyncdonkey import Poller, Sample, Vehicle
-from asyncdonkey.clock import Schedule
-from asyncdonkey.poller import STOP_CHECK_S
+from asyncdonkey.clock import Schedule, TickGrid
+from asyncdonkey.drive import START_MARGIN_S
+from asyncdonkey.poller import POLL_LEAD_S, STOP_CHECK_S
 from asyncdonkey.testing import VirtualClockLoop
 
 
@@ -170,9 +171,9 @@ class ModelTime:
             self.at = None
 
 
-def poll_on_model(poller: Poller, time_model: ModelTime, recheck: bool) -> None:
+def poll_on_model(poller: Poller, time_model: ModelTime, recheck: bool, grid: TickGrid | None = None) -> None:
     poller._running = True  # what update() does before starting the thread
-    poller._poll_blocking(time_model.now, time_model.sleep, recheck)
+    poller._poll_blocking(time_model.now, time_model.sleep, recheck, grid)
 
 
 @settings(max_examples=100, deadline=None)
@@ -242,3 +243,26 @@ def test_a_slow_poller_thread_notices_shutdown_within_stop_check():
     assert poller.reads == 2  # at 0 s and 2 s; none after the shutdown at 3.05 s
     assert max(clock.sleeps) <= STOP_CHECK_S
     assert 3.05 <= clock.t <= 3.05 + STOP_CHECK_S
+
+
+@pytest.mark.parametrize("spin_s", [0.0, 0.5e-3])
+def test_the_poller_thread_reads_on_the_drives_grid_ahead_of_the_ticks_by_its_lead(spin_s):
+    """In a drive the first read is on the drive's tick grid, just before its first tick (still to come), and
+    the others follow at the poller's rate: every third of a 60 Hz poller's just before a 20 Hz tick. Ahead by
+    POLL_LEAD_S, and by the drive's spin too when it has one (precise mode)."""
+    clock = ModelTime(100.0)
+    grid = TickGrid(origin=100.0 + START_MARGIN_S, period=0.05, spin_s=spin_s)
+    starts: list[float] = []
+
+    def read() -> int:
+        starts.append(clock.t)
+        if len(starts) == 30:
+            poller.shutdown()
+        return len(starts)
+
+    poller = Poller(read, rate_hz=60)
+    poll_on_model(poller, clock, recheck=False, grid=grid)
+    first = grid.origin - POLL_LEAD_S - spin_s
+    assert starts == pytest.approx([first + j / 60 for j in range(30)], abs=1e-9)
+    assert starts[::3] == pytest.approx([first + k * grid.period for k in range(10)], abs=1e-9)
+    assert poller.skipped == 0

@@ -116,42 +116,7 @@ def test_on_the_virtual_clock_the_first_tick_is_at_once_and_a_poller_reads_on_it
     assert stamps[:60:3] == pytest.approx(ticks[:20], abs=1e-12)  # every third read is due with a tick
 
 
-# ------------------------------------------------------------------------------ the poller's thread
-class ModelTime:
-    """The poller thread's clock and sleep, moving only when it sleeps."""
-
-    def __init__(self, t: float) -> None:
-        self.t = t
-
-    def now(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += seconds
-
-
-@pytest.mark.parametrize("spin_s", [0.0, 0.5e-3])
-def test_the_poller_thread_reads_on_the_grid_ahead_of_the_ticks_by_its_lead(spin_s):
-    """Ahead by POLL_LEAD_S, and by the drive's spin too when it has one (precise mode)."""
-    clock = ModelTime(100.0)
-    grid = TickGrid(origin=100.0 + START_MARGIN_S, period=0.05, spin_s=spin_s)  # a 20 Hz drive's first tick to come
-    starts: list[float] = []
-
-    def read() -> int:
-        starts.append(clock.t)
-        if len(starts) == 30:
-            poller.shutdown()
-        return len(starts)
-
-    poller = Poller(read, rate_hz=60)
-    poller._running = True
-    poller._poll_blocking(clock.now, clock.sleep, False, grid)
-    first = grid.origin - POLL_LEAD_S - spin_s
-    assert starts == pytest.approx([first + j / 60 for j in range(30)], abs=1e-9)  # the first before the first tick
-    assert starts[::3] == pytest.approx([first + k * grid.period for k in range(10)], abs=1e-9)
-    assert poller.skipped == 0
-
-
+# --------------------------------------------------------------------------------- on a real loop
 def test_on_a_real_loop_the_first_tick_waits_the_start_margin_and_the_poller_reads_on_its_grid():
     """Real time on a possibly busy machine: only what it can guarantee. The first tick is never before the drive's
     t0, reads are never before their grid point, and most are within a couple of milliseconds of it."""

@@ -386,6 +386,7 @@ class DeadlineWaiter:
         "_period_class",
         "_period_given",
         "_refresh_due",
+        "_series_reader",
         "_tfd",
         "_timer_slop",
         "_two_stage",
@@ -418,6 +419,8 @@ class DeadlineWaiter:
         # call_at(period=...): the periodic timer's interval (0: armed once per deadline) and its next expiry
         self._interval_ns = 0
         self._grid_ns = -1
+        # ... and the loop callback watching the timerfd for that series (None: _on_timerfd watches it)
+        self._series_reader: Callable[[], None] | None = None
         #: precise mode on a timerfd: how long before the spin window the first of its two sleeps ends
         self._guard_s = 0.0
         self._two_stage = True  # precise mode sleeps twice (until the first sleep's lateness says otherwise)
@@ -467,15 +470,10 @@ class DeadlineWaiter:
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_timerfd(self, tfd: _timerfd.Timerfd | None) -> None:
         """The timerfd is readable (or, with ``tfd`` None, the loop timer fired): run a pending :meth:`call_at`
-        callback, re-arming for the deadline it returns, or resume the waiting task."""
+        callback, re-arming for the deadline it returns, or resume the waiting task. (A periodic series has a
+        reader of its own while it lasts: :meth:`_watch_series`.)"""
         callback = self._call
         if callback is not None:
-            interval = self._interval_ns
-            if interval:  # a periodic timer: consume its expiry, or it stays readable
-                try:
-                    _read(tfd.fd, 8)  # type: ignore[union-attr]
-                except BlockingIOError:  # a readiness left from an earlier arming: nothing fired
-                    return
             t = self._now()
             target = self._call_target
             if self._first_at and self.precise:
@@ -484,7 +482,6 @@ class DeadlineWaiter:
             # arming, or a loop timer rounded early. Sleep again, unless precise mode has too little time left
             # for that: it spins the rest then.
             if t < target and (not self.precise or target - t >= _SHORT_SLEEP_MIN_S):
-                self._grid_ns = -1  # (a periodic timer is armed afresh after this one-shot)
                 self._arm(target, t)
                 return
             self._call = None
@@ -494,21 +491,11 @@ class DeadlineWaiter:
                 now = self._now
                 while t < deadline:  # the last stretch is spun on the clock
                     t = now()
-            # No read() of the timerfd: arming it again clears the expiry; if the callback ends the series,
+            # No read() of the timerfd: arming it again clears the expiry; if the callback ends the calls,
             # the next readiness finds nothing pending and consumes the expiry then.
             deadline = callback()
             if deadline is not None and self._call is None:
                 arm = self._fast_arm
-                if interval:  # a periodic timer (never in precise mode: one-shot sleeps, see _arm_first)
-                    grid = self._grid_ns + interval
-                    if 0 <= grid - ceil(deadline * 1e9) <= _GRID_SLACK_NS:  # on the grid: already armed for it
-                        self._call = callback
-                        self._call_deadline = self._call_target = deadline
-                        self.waits += 1
-                        self._grid_ns = grid
-                        return
-                    self._pend(callback, deadline)  # off the grid: a new grid
-                    return
                 if arm is not None:  # _pend's timerfd case without precise mode, written out: once per period
                     self._call = callback
                     self._call_deadline = self._call_target = deadline
@@ -516,11 +503,7 @@ class DeadlineWaiter:
                     arm(ceil(deadline * 1e9))
                     return
                 self._pend(callback, deadline)  # the loop's timers, or precise mode's sleeps
-            elif interval and self._call is None:  # the series ended: stop the periodic timer
-                self._end_periodic()
             return
-        if self._interval_ns:  # a periodic timer outlived its series (its callback raised): stop it
-            self._end_periodic()
         wakeup = self._wakeup
         if wakeup.waiting:
             # No read() here: the waiter re-arms (which clears the expiry) before the loop polls again, or
@@ -535,6 +518,63 @@ class DeadlineWaiter:
         tfd = self._tfd
         if tfd is not None and tfd.fd >= 0:
             tfd.arm(0)  # disarms, and clears a pending expiry
+        self._unwatch_series()
+
+    def _watch_series(self, callback: Callable[[], float | None]) -> None:
+        """Watch the timerfd with a loop callback of its own for ``callback``'s periodic series.
+
+        A wake-up on the period is most of what a drive's idle tick costs, and it runs on caches gone cold over
+        the period, where every attribute read, branch and call of Python is a few cache misses. So a periodic
+        series gets the shortest path there is: ``read()`` the expiry count, call back, and check that the
+        deadline it returns is the timer's next expiry. Nothing else can be pending then (no precise mode, no
+        loop timer, no early readiness: the grid is never before a deadline, and an arming clears a stale
+        expiry, which then reads as nothing fired). Anything off that path goes to :meth:`_pend`, and the end
+        of the series (or :meth:`cancel_call`) gives the timerfd back to :meth:`_on_timerfd`.
+        """
+        tfd = self._tfd
+        fd = tfd.fd  # type: ignore[union-attr]
+        interval = self._interval_ns
+        slack = _GRID_SLACK_NS
+
+        def on_expiry() -> None:
+            try:
+                _read(fd, 8)
+            except BlockingIOError:  # a readiness left from an earlier arming: nothing fired
+                return
+            if self._call is not callback:  # (defensive: the series ends before its reader is replaced)
+                self._end_periodic()
+                self._on_timerfd(tfd)
+                return
+            self._call = None  # (the callback may call call_at or cancel_call itself)
+            try:
+                deadline = callback()
+            except BaseException:  # the series ends with its callback's error (raised to the loop)
+                if self._call is None:
+                    self._end_periodic()
+                raise
+            if deadline is None or self._call is not None:
+                if self._call is None:  # the series ended: stop the periodic timer
+                    self._end_periodic()
+                return
+            grid = self._grid_ns + interval
+            if 0 <= grid - ceil(deadline * 1e9) <= slack:  # on the grid: already armed for it
+                self._call = callback
+                self._call_deadline = self._call_target = deadline
+                self.waits += 1
+                self._grid_ns = grid
+                return
+            self._pend(callback, deadline)  # off the grid (a skip): a new grid
+
+        self._series_reader = on_expiry
+        self._loop.add_reader(fd, on_expiry)
+
+    def _unwatch_series(self) -> None:
+        if self._series_reader is None:
+            return
+        self._series_reader = None
+        tfd = self._tfd
+        if tfd is not None and tfd.fd >= 0 and not self._loop.is_closed():
+            self._loop.add_reader(tfd.fd, self._on_timerfd, tfd)
 
     def _on_loop_timer(self) -> None:
         self._handle = None
@@ -685,6 +725,7 @@ class DeadlineWaiter:
         if self._wakeup.waiting or self._vfut is not None:
             raise RuntimeError("DeadlineWaiter.call_at: this waiter is already waiting (one task per waiter)")
         self.cancel_call()
+        self._unwatch_series()  # (a new series from inside the last one's callback: cancel_call found none)
         self._call_early = bool(early)
         if period is not None and not (period > 0 and math.isfinite(period)):
             raise ValueError(f"DeadlineWaiter.call_at: period must be a positive number of seconds, got {period!r}")
@@ -717,6 +758,8 @@ class DeadlineWaiter:
         if interval:
             ns = self._grid_ns = ceil(target * 1e9)
             self._tfd.arm_every(ns, interval)  # type: ignore[union-attr]
+            if self._series_reader is None:
+                self._watch_series(callback)
             return
         self._arm_first(target, self._now())
 
@@ -741,6 +784,7 @@ class DeadlineWaiter:
                 self._handle = None
         else:
             self._disarm()
+            self._unwatch_series()
 
     def _virtual_fire(self) -> None:
         callback = self._call
@@ -900,6 +944,7 @@ class DeadlineWaiter:
         tfd.close()
         self._fast_arm = None
         self._interval_ns = 0
+        self._series_reader = None
         self._wakeup.fire()  # a wait in progress re-checks the clock and goes on with the loop's timers
         self._tfd = None
         self.mode = "loop-timer"  # a later wait still works, on the loop's timers

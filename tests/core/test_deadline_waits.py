@@ -888,6 +888,81 @@ def test_call_at_with_a_period_follows_a_callback_that_raises_and_stops_its_time
     assert isinstance(error, RuntimeError)
 
 
+@pytest.mark.parametrize("end", ["returns None", "cancel_call", "raises", "new series"])
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_factory, end):
+    """A periodic series watches the timerfd with a loop callback of its own; however the series ends, the
+    waiter's next wait and next series still wake on time (a wait left to the series' callback would hang)."""
+    period = 0.003
+
+    async def main() -> tuple[list[float], float, float, list[tuple[float, float]], list[float]]:
+        loop = asyncio.get_running_loop()
+        loop.set_exception_handler(lambda _loop, _ctx: None)  # the "raises" case's error, expected
+        now = time.monotonic
+        waiter = DeadlineWaiter()
+        first_done = loop.create_future()
+        t0 = now() + 0.005
+        called: list[float] = []
+        second: list[float] = []
+        second_deadlines = [t0 + 10 * period + k * 2 * period for k in range(4)]
+
+        def then() -> float | None:  # a second series, started from inside the first one's callback
+            second.append(now())
+            if len(second) == len(second_deadlines):
+                first_done.set_result(None)
+                return None
+            return second_deadlines[len(second)]
+
+        def job() -> float | None:
+            called.append(now())
+            if len(called) < 3:
+                return t0 + len(called) * period
+            if end == "raises":
+                loop.call_soon(first_done.set_result, None)
+                raise RuntimeError("part failed")
+            if end == "new series":
+                waiter.call_at(second_deadlines[0], then, period=2 * period)
+                return None
+            if end == "cancel_call":
+                loop.call_soon(first_done.set_result, None)
+                return t0 + len(called) * period  # a next deadline, dropped below before it is due
+            loop.call_soon(first_done.set_result, None)
+            return None
+
+        waiter.call_at(t0, job, period=period)
+        await asyncio.wait_for(first_done, 5)
+        if end == "cancel_call":
+            waiter.cancel_call()
+        deadline = now() + 0.004
+        assert await asyncio.wait_for(waiter.wait_until(deadline), 5)
+        woke = now()
+        # and a new series on the same waiter
+        again_done = loop.create_future()
+        again: list[float] = []
+        t1 = now() + 0.004
+        again_deadlines = [t1 + k * period for k in range(3)]
+
+        def once_more() -> float | None:
+            again.append(now())
+            if len(again) == len(again_deadlines):
+                again_done.set_result(None)
+                return None
+            return again_deadlines[len(again)]
+
+        waiter.call_at(t1, once_more, period=period)
+        await asyncio.wait_for(again_done, 5)
+        waiter.close()
+        return called, deadline, woke, list(zip(second_deadlines, second)), again
+
+    called, deadline, woke, second, again = run_on(loop_factory, main())
+    assert len(called) == 3
+    assert deadline <= woke < deadline + GENEROUS_S
+    assert len(again) == 3
+    if end == "new series":
+        assert len(second) == 4
+        assert all(d <= t < d + GENEROUS_S for d, t in second)  # on its own deadlines, 2 x the first's period
+
+
 def test_call_at_period_must_be_positive():
     async def main() -> None:
         with DeadlineWaiter() as waiter:

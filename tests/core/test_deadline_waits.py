@@ -952,7 +952,7 @@ def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_
         waiter.call_at(t1, once_more, period=period)
         await asyncio.wait_for(again_done, 5)
         waiter.close()
-        return called, deadline, woke, list(zip(second_deadlines, second)), again
+        return called, deadline, woke, list(zip(second_deadlines, second, strict=False)), again
 
     called, deadline, woke, second, again = run_on(loop_factory, main())
     assert len(called) == 3

@@ -438,6 +438,21 @@ def test_a_cancel_message_reaches_the_waiting_task():
     run_on(uvloop.new_event_loop, main())
 
 
+def _through(deadlines: list[float], done: asyncio.Future[None]) -> tuple[Callable[[], float | None], list[float]]:
+    """A ``call_at`` callback that notes when it was called and returns the next of ``deadlines``; after the last
+    it completes ``done`` and returns None. Returns the callback and its call times."""
+    called: list[float] = []
+
+    def job() -> float | None:
+        called.append(time.monotonic())
+        if len(called) == len(deadlines):
+            done.set_result(None)
+            return None
+        return deadlines[len(called)]
+
+    return job, called
+
+
 # ------------------------------------------------------------------------------------------- call_at
 
 
@@ -449,16 +464,8 @@ def test_call_at_runs_a_periodic_callback_never_early_until_it_returns_none(loop
         now = time.monotonic
         t0 = now() + 0.01
         deadlines = [t0 + k * 0.0041 for k in range(12)]
-        called: list[float] = []
         done = asyncio.get_running_loop().create_future()
-
-        def job() -> float | None:
-            called.append(now())
-            if len(called) == len(deadlines):
-                done.set_result(None)
-                return None
-            return deadlines[len(called)]
-
+        job, called = _through(deadlines, done)
         waiter.call_at(deadlines[0], job)
         await asyncio.wait_for(done, 5)
         await asyncio.sleep(0.02)  # a stray extra call would land here
@@ -903,15 +910,8 @@ def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_
         first_done = loop.create_future()
         t0 = now() + 0.005
         called: list[float] = []
-        second: list[float] = []
         second_deadlines = [t0 + 10 * period + k * 2 * period for k in range(4)]
-
-        def then() -> float | None:  # a second series, started from inside the first one's callback
-            second.append(now())
-            if len(second) == len(second_deadlines):
-                first_done.set_result(None)
-                return None
-            return second_deadlines[len(second)]
+        then, second = _through(second_deadlines, first_done)  # started from inside the first one's callback
 
         def job() -> float | None:
             called.append(now())
@@ -938,17 +938,8 @@ def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_
         woke = now()
         # and a new series on the same waiter
         again_done = loop.create_future()
-        again: list[float] = []
         t1 = now() + 0.004
-        again_deadlines = [t1 + k * period for k in range(3)]
-
-        def once_more() -> float | None:
-            again.append(now())
-            if len(again) == len(again_deadlines):
-                again_done.set_result(None)
-                return None
-            return again_deadlines[len(again)]
-
+        once_more, again = _through([t1 + k * period for k in range(3)], again_done)
         waiter.call_at(t1, once_more, period=period)
         await asyncio.wait_for(again_done, 5)
         waiter.close()

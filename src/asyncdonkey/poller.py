@@ -185,7 +185,10 @@ class Poller(Generic[T]):
         t = now()
         lead = POLL_LEAD_S if grid is None else POLL_LEAD_S + grid.spin_s  # (ahead of a precise drive's spin)
         sched = Schedule(self.rate_hz, grid_start(grid, self.rate_hz, t, lead))
-        t0, rate, k = sched.t0, sched.rate_hz, sched.k
+        # The read count as a float: ``t0 + k / rate`` is then the Schedule's deadline to the bit (a count below
+        # 2**53 converts to float exactly, as the Schedule's int does in its division), and counting makes no int
+        # object per read; the thread wakes to cold caches, where each allocation is a few cache misses.
+        t0, rate, k = sched.t0, sched.rate_hz, float(sched.k)
         behind = sched.period + TIME_EPS  # Schedule.advance's test for "more than a period behind"
         deadline = sched.deadline
         while True:
@@ -219,13 +222,13 @@ class Poller(Generic[T]):
                 if subscribers:
                     for callback in subscribers:
                         callback(value, t)
-            k += 1
+            k += 1.0
             deadline = t0 + k / rate  # Schedule's deadline of tick k
             if t - deadline > behind:
-                sched.k = k - 1  # the tick that just ended
+                sched.k = int(k) - 1  # the tick that just ended
                 sched.advance(t)
                 self.skipped = sched.skipped
-                k, deadline = sched.k, sched.deadline
+                k, deadline = float(sched.k), sched.deadline
 
     # ---------------------------------------------------------------- virtual clock: timers + executor
     async def _poll_on_loop(self, loop: asyncio.AbstractEventLoop, clock: Clock) -> None:

@@ -16,11 +16,11 @@ syscall): :func:`create` raises ``OSError`` then, and the caller falls back the 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
-import sys
 from array import array
 from collections.abc import Callable
+
+from ._libc import libc_function
 
 __all__ = ["AVAILABLE", "Timerfd"]
 
@@ -34,22 +34,14 @@ def _libc_functions() -> tuple[Callable[..., int], Callable[..., int], Callable[
     """``timerfd_create`` and ``timerfd_settime`` with errno kept, and ``timerfd_settime`` bare: the arming on
     every wait goes through the bare one (no argument conversion, no errno bookkeeping: about a third cheaper)
     and only a failure is repeated through the checked one, for its errno."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        name = ctypes.util.find_library("c") or "libc.so.6"
-        libc = ctypes.CDLL(name, use_errno=True)
-        create, settime = libc.timerfd_create, libc.timerfd_settime
-        bare_settime = ctypes.CDLL(name).timerfd_settime
-    except (OSError, AttributeError):
-        return None
-    create.argtypes = (ctypes.c_int, ctypes.c_int)
-    create.restype = ctypes.c_int
+    create = libc_function("timerfd_create", (ctypes.c_int, ctypes.c_int))
     # struct itimerspec is four C longs (time_t and long are both the platform's long on Linux's classic ABIs,
     # 64-bit and 32-bit ARM alike); it is passed as the address of an array('l'), see Timerfd
-    settime.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
-    settime.restype = ctypes.c_int
-    bare_settime.restype = ctypes.c_int  # called with (int, int, c_void_p, None): nothing left to convert
+    settime = libc_function("timerfd_settime", (ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p))
+    # called with (int, int, c_void_p, None): nothing left to convert
+    bare_settime = libc_function("timerfd_settime", None, use_errno=False)
+    if create is None or settime is None or bare_settime is None:
+        return None
     return create, settime, bare_settime
 
 

@@ -14,24 +14,14 @@ directories (:meth:`sync_path`, :meth:`sync_dir`).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
+
+from ..._libc import libc_function
 
 __all__ = ["TubFileIO"]
 
 
-def _load_syncfs():  # -> callable | None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        fn = libc.syncfs
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes = [ctypes.c_int]
-    fn.restype = ctypes.c_int
-    return fn
-
-
-_SYNCFS = _load_syncfs()
+_SYNCFS = libc_function("syncfs", (ctypes.c_int,))
 _fdatasync = getattr(os, "fdatasync", os.fsync)
 
 

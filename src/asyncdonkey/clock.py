@@ -476,7 +476,7 @@ class DeadlineWaiter:
         if callback is not None:
             t = self._now()
             target = self._call_target
-            if self._first_at and self.precise:
+            if self._first_at:
                 self._first_woke(t)
             # Not yet: precise mode's first sleep (a guard before the window), a readiness left from an earlier
             # arming, or a loop timer rounded early. Sleep again, unless precise mode has too little time left
@@ -623,7 +623,7 @@ class DeadlineWaiter:
                         self._disarm()
                         return False
                     t = now()
-                    if self._first_at and self.precise:
+                    if self._first_at:
                         self._first_woke(t)
                     if t >= target or (self.precise and target - t < _SHORT_SLEEP_MIN_S):
                         break  # (precise mode spins what is left)
@@ -639,7 +639,11 @@ class DeadlineWaiter:
 
     def _arm_first(self, target: float, now: float) -> None:
         """Arm for ``target``; in precise mode on a timerfd the first sleep ends a guard before it (see
-        :data:`_GUARD_S`), unless that leaves no room for a second sleep."""
+        :data:`_GUARD_S`), unless that leaves no room for a second sleep. Only precise mode learns from its first
+        sleeps, so only there is one pending (:attr:`_first_at` stays 0 otherwise)."""
+        if not self.precise:
+            self._arm(target, now)
+            return
         first = target - self._guard_s
         if first <= now + _SHORT_SLEEP_MIN_S:
             first = target

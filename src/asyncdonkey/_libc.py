@@ -6,8 +6,8 @@ poller thread's exact wake-ups) and ``syncfs`` (a tub's sync points). Each is re
 module finds the C library once, loads it at most twice (with and without ``errno`` saving, which ``ctypes``
 decides per library handle, not per function) and hands out each function with its C signature set.
 
-Every lookup answers ``None`` where the call does not exist: another OS, a C library without it, or a Python
-without ``ctypes``'s dynamic loading. Callers then take their documented fallback.
+Every lookup answers ``None`` where the call does not exist: another OS, a C library without it, or one that
+cannot be loaded. Callers then take their documented fallback.
 """
 
 from __future__ import annotations
@@ -58,4 +58,4 @@ def libc_function(
     if argtypes is not None:
         fn.argtypes = tuple(argtypes)
     fn.restype = restype
-    return fn  # type: ignore[no-any-return]
+    return fn

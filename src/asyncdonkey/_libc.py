@@ -43,7 +43,7 @@ def libc_function(
     """The C library's function ``name`` with the given signature, or None where there is none.
 
     ``argtypes=None`` leaves the arguments unconverted: the caller passes only ints, ``None`` and ``c_void_p``
-    objects, and each call skips the conversion (the drive's timer arming, once a period). ``use_errno=False``
+    objects, and each call skips the conversion (a timer armed for every wait). ``use_errno=False``
     skips saving ``errno`` after each call too; a caller that needs the error of a failed call repeats it
     through a checked twin. Each call returns a function object of its own, so two callers never share a
     signature.

@@ -31,6 +31,7 @@ from .signals import PartInterrupted
 
 if TYPE_CHECKING:
     from .loop import DriveReport
+    from .safety.process import SafetyProcess
     from .watchdog import Watchdog
 
 __all__ = ["Drive"]
@@ -84,6 +85,8 @@ class Drive:
         self.background_error: PartError | None = None
         self.on = False
         self.watchdog: Watchdog | None = None
+        #: the safety process, heartbeaten once a tick (None: none runs)
+        self.guard: SafetyProcess | None = None
         # what the loop thread is doing (read by the watchdog thread)
         self.current: Entry | None = None
         self.part_started = math.inf
@@ -325,6 +328,10 @@ class Drive:
         loops = self.loops
         precise = self.waiter.precise  # never on the virtual clock, whose time stands still during a tick
         arrived = self.waiter.arrived
+        beat = None
+        if self.guard is not None:
+            self.guard.ticking()
+            beat = self.guard.beat
         while not self.stop_requested:
             if loops >= stop_at:
                 self.stop_reason = self.stop_reason or "max_loop_count"
@@ -345,6 +352,8 @@ class Drive:
             else:
                 start = now()
             self.last_start = t = start
+            if beat is not None:
+                beat(start)
             if loops == 0:
                 self.first_start = start
             if dormant:
@@ -523,6 +532,13 @@ class Drive:
         r.part_errors = {e.name: e.errors for e in self.entries if e.errors}
         if self.watchdog is not None:
             r.watchdog_events = self.watchdog.events
+            r.watchdog_failed_attempts = self.watchdog.failed_attempts
+        for e in self.entries:
+            unsafe = getattr(e.part, "unsafe", None) if e.actuator else None
+            if unsafe is not None and unsafe.events:
+                r.unsafe_ms[e.name] = unsafe.as_dict()
+        if self.guard is not None:
+            r.safety_process = self.guard.summary
         if self.longest_block is not None:
             r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
         r.shutdown_abandoned = list(self.abandoned)

@@ -28,6 +28,7 @@ from .errors import AsyncdonkeyError, OutputCountError, PartError, PartSpecError
 from .memory import Memory
 from .plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
 from .profiler import Profiler
+from .safety.process import GuardedOutput, SafetyProcess, SafetyProcessError, heartbeat_timeout_for
 from .shutdown import shutdown_drive
 from .signals import stop_on_signals
 from .watchdog import ActuatorRuntime, Watchdog, watched
@@ -65,6 +66,12 @@ class DriveReport:
         parts: per-part timing summaries in ms (Donkeycar's columns), by part name.
         part_errors: errors caught and survived under ``on_error="continue"``, by part name.
         watchdog_events: times the watchdog put an actuator in its safe state.
+        watchdog_failed_attempts: the watchdog's safe-state writes that failed and were tried again.
+        unsafe_ms: per actuator that had any, ``events`` (a command deadline passed while the output showed a
+            driving pulse), ``total`` and ``max``: ms from the deadline until the safe state landed on the
+            output, by whichever path landed it first (its writer, the watchdog, the safety process).
+        safety_process: what the safety process did (``outputs`` it guarded, ``events``, ``failed_attempts``,
+            ``heartbeat_timeout_ms``, and per output where it acted), or ``None`` when none ran.
         longest_block_ms: ``(ms, part)`` of the longest time a sync part held the loop thread past
             ``block_report_s``, or ``None``.
         shutdown_abandoned: parts whose ``shutdown()`` (or ``update()`` thread) outlived its timeout and
@@ -91,6 +98,9 @@ class DriveReport:
     parts: dict[str, dict[str, float] | None] = field(default_factory=dict)
     part_errors: dict[str, int] = field(default_factory=dict)
     watchdog_events: int = 0
+    watchdog_failed_attempts: int = 0
+    unsafe_ms: dict[str, dict[str, float]] = field(default_factory=dict)
+    safety_process: dict[str, Any] | None = None
     longest_block_ms: tuple[float, str] | None = None
     shutdown_abandoned: list[str] = field(default_factory=list)
     pipelined: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -117,7 +127,13 @@ class Vehicle:
     #: a sync part holding the loop thread longer than this is named in a warning when it returns
     block_report_s = 0.25
 
-    def __init__(self, mem: Memory | None = None, *, profiler_window: int | None = None) -> None:
+    def __init__(
+        self, mem: Memory | None = None, *, profiler_window: int | None = None, safety_process: bool | None = None
+    ) -> None:
+        #: the safety process (``asyncdonkey.safety``): ``None`` starts it on a real loop whenever an actuator
+        #: has an output it can reach (a PCA9685 channel) and drives on without it, logging why, if it cannot
+        #: start; ``True`` requires it (the drive does not start without it); ``False`` never starts it
+        self.safety_process = safety_process
         self.mem = mem if mem is not None else Memory()
         self._profiler_window = profiler_window
         self.profiler = self._new_profiler()
@@ -318,12 +334,15 @@ class Vehicle:
         self.on = drive.on = True
         outcome: BaseException | None = None
         try:
+            drive.guard = await self._start_safety_process(drive, float(rate_hz))
             self._attach_actuators(drive)
             drive.start_background(float(rate_hz))
             await drive.tick_loop(float(rate_hz), max_loop_count, duration, verbose, report_every)
         except BaseException as exc:
             outcome = exc
             report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
+        if drive.guard is not None:
+            drive.guard.ending()
         self.on = drive.on = False
         drive.waiter.close()
         drive.unsubscribe_push_sources()
@@ -347,6 +366,40 @@ class Vehicle:
             raise drive.background_error
         return report
 
+    async def _start_safety_process(self, drive: Drive, rate_hz: float) -> SafetyProcess | None:
+        """Start the safety process for the actuators it can reach, as :attr:`safety_process` asks.
+
+        Never on the virtual clock: there, time stands still while the loop thread is busy, so nothing can go
+        stale behind its back, and a real process beside virtual time would see every deadline as long past."""
+        want = self.safety_process
+        if want is False or drive.clock.is_virtual:
+            return None
+        outputs: list[GuardedOutput] = []
+        windows: list[float | None] = []
+        for e in drive.entries:
+            routed = getattr(e.part, "safety_route", None) if e.actuator else None
+            route = routed() if callable(routed) else None
+            if route is not None:
+                outputs.append(GuardedOutput(e.name, route, e.part))
+                windows.append(getattr(e.part, "failsafe_age_s", None))
+        if not outputs:
+            if want:
+                raise SafetyProcessError(
+                    "Vehicle(safety_process=True): no actuator has an output another process can reach (a PCA9685 "
+                    "channel given by pin spec or PWMChannel)"
+                )
+            return None
+        guard = SafetyProcess(outputs, heartbeat_timeout_for(windows, rate_hz))
+        try:
+            await asyncio.get_running_loop().run_in_executor(None, guard.start)
+        except (SafetyProcessError, OSError) as exc:
+            guard.kill()
+            if want:
+                raise SafetyProcessError(str(exc)) from exc
+            logger.error("%s; driving with the in-process watchdog only", exc)
+            return None
+        return guard
+
     def _attach_actuators(self, drive: Drive) -> None:
         """Give each actuator its latency recorder, and start the watchdog on a real loop."""
         actuators = [e for e in drive.entries if e.actuator]
@@ -355,11 +408,17 @@ class Vehicle:
         guarded = watched(actuators)
         if guarded and not drive.clock.is_virtual:
             drive.watchdog = Watchdog(drive, guarded, drive.clock.now)
+        guard = drive.guard
+        slot = {o.name: i for i, o in enumerate(guard.outputs)} if guard is not None else {}
         for e in actuators:
             record = latency_recorder(drive.profiler, e.name)
             attach = getattr(e.part, "attach", None)
             if callable(attach):
-                attach(ActuatorRuntime(record, drive.watchdog))
+                i = slot.get(e.name)
+                if guard is not None and i is not None:
+                    attach(ActuatorRuntime(record, drive.watchdog, guard.deadline_setter(i), _last_event(guard, i)))
+                else:
+                    attach(ActuatorRuntime(record, drive.watchdog))
             else:
                 e.latency = _run_end_latency(record, self.mem.origins, e)
         if drive.watchdog is not None:
@@ -368,6 +427,8 @@ class Vehicle:
     def _detach_actuators(self, drive: Drive) -> None:
         if drive.watchdog is not None:
             drive.watchdog.stop()
+        if drive.guard is not None:
+            drive.guard.stop()
         for e in drive.entries:
             if not e.actuator:
                 continue
@@ -406,7 +467,22 @@ class Vehicle:
         if report.part_errors:
             rows.append(("part errors", ", ".join(f"{k}: {v}" for k, v in report.part_errors.items())))
         if report.watchdog_events:
-            rows.append(("watchdog", f"{report.watchdog_events} safe-state events"))
+            failed = report.watchdog_failed_attempts
+            retried = f", {failed} failed writes retried" if failed else ""
+            rows.append(("watchdog", f"{report.watchdog_events} safe-state events{retried}"))
+        for name, u in report.unsafe_ms.items():
+            rows.append(
+                (f"unsafe ({name})", f"{u['events']} times, {u['total']:.0f} ms in all, longest {u['max']:.0f} ms")
+            )
+        sp = report.safety_process
+        if sp is not None:
+            rows.append(
+                (
+                    "safety process",
+                    f"guarded {', '.join(sp['outputs'])}; {sp['events']} safe-state events, "
+                    f"{sp['failed_attempts']} failed writes retried",
+                )
+            )
         if report.shutdown_abandoned:
             rows.append(("shutdown abandoned", ", ".join(report.shutdown_abandoned)))
         if report.longest_block_ms is not None:
@@ -450,6 +526,10 @@ class Vehicle:
         """:meth:`run` with SIGINT and SIGTERM bound to the two-step stop (``asyncdonkey.signals``)."""
         with stop_on_signals(self, self.shutdown_deadline_s()):
             return await self.run(rate_hz, max_loop_count, **kwargs)
+
+
+def _last_event(guard: SafetyProcess, i: int) -> Callable[[], tuple[float, float]]:
+    return lambda: guard.last_event(i)
 
 
 def _run_end_latency(

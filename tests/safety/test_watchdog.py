@@ -109,3 +109,44 @@ def test_without_an_age_input_there_is_nothing_to_watch():
     rig.close()
     assert report.watchdog_events == 0
     assert rig.pca.pulse_at(blocker.ended) == HALF  # documented: wire "throttle@age" to get the failsafe
+
+
+class NackingBlocker(Blocker):
+    """Blocks the loop thread while the servo board NACKs: the first safe-state writes fail."""
+
+    def __init__(self, rig: Rig, nacks: int, **kw) -> None:
+        super().__init__(**kw)
+        self.rig, self.nacks = rig, nacks
+
+    def run(self) -> None:
+        if self.k + 1 == self.at:
+            self.rig.sim.bus(1).nack(0x40, times=self.nacks)
+        super().run()
+
+
+def test_a_safe_state_write_that_fails_is_retried_until_it_lands(caplog):
+    """12 NACKs: three of the watchdog's writes fail (each is the bus's four attempts); the fourth lands."""
+    caplog.set_level(logging.WARNING)
+    rig = Rig()
+    blocker = NackingBlocker(rig, 12, at=10, seconds=2.0)
+    v = Vehicle()
+    v.add(Const(0.5), outputs=["throttle"])
+    v.add(rig.throttle(), inputs=["throttle", "throttle@age"], name="throttle")
+    v.add(blocker, name="Pilot")
+    try:
+        report = run_blocking(v.run(20, max_loop_count=20))
+    finally:
+        rig.close()
+    t0 = blocker.started
+    assert rig.pca.pulse_at(t0) == HALF
+    stopped = rig.pca.first_time(NEUTRAL, t0)
+    assert stopped is not None and stopped < blocker.ended  # not left driving for the whole block
+    assert stopped - t0 <= WINDOW + SLACK
+    assert report.watchdog_failed_attempts == 3
+    unsafe = report.unsafe_ms["throttle"]
+    assert unsafe["events"] == 1
+    assert 0 < unsafe["max"] <= SLACK * 1e3  # from the deadline to the landing, retries included
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("retrying until it lands" in m and "'throttle'" in m for m in messages), messages
+    assert any("safe state written after 4 attempts" in m for m in messages), messages
+    assert "unsafe (throttle): 1 times" in v.format_report(report)

@@ -149,6 +149,7 @@ class I2CBus:
             import smbus2
 
             smbus_factory = smbus2.SMBus
+        self._factory = smbus_factory
         try:
             self._smbus: SMBusLike = smbus_factory(bus_number)
         except FileNotFoundError as exc:
@@ -184,6 +185,26 @@ class I2CBus:
         """Hold the bus for a sequence of sync transfers (e.g. read-modify-write of a mode register)."""
         with self._lock:
             yield self
+
+    def cross_process_spec(self) -> dict[str, Any] | None:
+        """How another process opens this same bus with a handle of its own, or ``None`` if it cannot.
+
+        The safety process (``asyncdonkey.safety``) writes actuators' safe states through its own handle, so that
+        nothing in the car's process (its GIL, its locks, its death) stands between it and the chip. A real bus
+        is ``{"path": "/dev/i2c-N"}``; a simulated bus can be reached from another process only when its
+        simulator is served (:meth:`asyncdonkey.testing.i2c_models.I2CSimulator.serve`), and then it is
+        ``{"simulator": endpoint, "bus": N}``. Any other factory (an in-process fake) has no such path.
+        """
+        factory = self._factory
+        import smbus2
+
+        if factory is smbus2.SMBus:
+            return {"path": f"/dev/i2c-{self.bus_number}"}
+        owner = getattr(factory, "__self__", factory)
+        endpoint = getattr(owner, "endpoint", None)
+        if isinstance(endpoint, str):
+            return {"simulator": endpoint, "bus": self.bus_number}
+        return None
 
     def shared(self, key: Any, create: Callable[[], T]) -> T:
         """The one object for ``key`` on this bus, made by ``create()`` the first time.

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 from .i2c import I2CBus, I2CBusRegistry, get_bus
 from .pinspec import PCA9685Pin, parse_pca9685_pin
@@ -226,6 +227,26 @@ class PWMChannel:
 
     async def full_off(self) -> None:
         await self.set_pulse(0)
+
+    def safety_route(self, pulse: int) -> dict[str, Any] | None:
+        """What another process needs to put ``pulse`` on this output by itself, or ``None`` if it cannot.
+
+        The route is plain data (the safety process is a separate interpreter that imports no driver): the bus
+        (:meth:`~asyncdonkey.hw.i2c.I2CBus.cross_process_spec`), the chip's address, the channel's first
+        register and the four register bytes of the pulse. The block write needs the chip's auto-increment, so
+        the route names MODE1 and its AI bit: where a power glitch has reset MODE1, the bytes go one at a time.
+        """
+        spec = self.chip.bus.cross_process_spec()
+        if spec is None:
+            return None
+        return {
+            "smbus": spec,
+            "address": self.chip.address,
+            "register": LED0_ON_L + 4 * self.channel,
+            "data": list(channel_bytes(int(pulse))),
+            "auto_increment": [MODE1, MODE1_AI],
+            "name": self.name,
+        }
 
 
 def get_pca9685(bus: I2CBus, address: int = DEFAULT_ADDRESS, frequency_hz: float = 60) -> PCA9685:

@@ -53,6 +53,7 @@ from ..hw.i2c import I2CBusRegistry
 from ..hw.pca9685 import PWMChannel, open_pwm_channel
 from ..hw.pinspec import PCA9685Pin
 from ..ratelimit import LogThrottle
+from ..safety.unsafe import UnsafeTime
 
 __all__ = ["PWMSteering", "PWMThrottle", "donkeycar_map_range", "pulse_to_ticks"]
 
@@ -131,11 +132,14 @@ class _PWMPart:
         #: runs a sync function off the loop thread where the output's transfers run
         self._run_off_loop: Callable[..., Awaitable[Any]] | None = None
         self._async_write: Callable[[int], Awaitable[None]] | None = None
+        #: the PCA9685 output, when there is one: the safety process reaches it through a route of its own
+        self._channel: PWMChannel | None = None
         scale, inverted = float(pwm_scale), bool(pwm_inverted)
+        self._scale, self._inverted = scale, inverted
         if isinstance(controller, str | PCA9685Pin):
             controller = open_pwm_channel(controller, frequency_hz, buses=buses)
         if isinstance(controller, PWMChannel):
-            channel = controller
+            channel = self._channel = controller
             where = channel.name
 
             def raw(pulse: int) -> None:
@@ -191,6 +195,8 @@ class _PWMPart:
         self._running = False
         self._now: Callable[[], float] | None = None
         self._log = LogThrottle(1.0)
+        #: how long the output was unsafe this drive (a command deadline passed, the safe state not yet landed)
+        self.unsafe = UnsafeTime()
 
     # ---------------------------------------------------------------------------------- hot path
     def _set_target(self, pulse: int) -> None:
@@ -213,6 +219,8 @@ class _PWMPart:
             if self._tripped and pulse != self.neutral_pulse:
                 return
             raw(pulse)
+            if pulse == self.neutral_pulse and self.unsafe.open_since is not None and self._now is not None:
+                self.unsafe.closed(self._now())
 
     async def _write_pulse(self, pulse: int) -> None:
         if self._raw_write is not None and self._run_off_loop is not None:
@@ -231,9 +239,29 @@ class _PWMPart:
             raise RuntimeError(f"{self.name}: the output has no synchronous write, so only the loop can stop it")
         with self._wlock:
             self._tripped = True
+            self.unsafe.stale(self.command_deadline(), self.written_pulse == self.neutral_pulse)
             raw(self.neutral_pulse)
+            if self._now is not None:
+                self.unsafe.closed(self._now())
         self.written_pulse = self.neutral_pulse
         self.pulse = self.neutral_pulse
+
+    def safety_route(self) -> dict[str, Any] | None:
+        """How the safety process puts this output in its safe state by itself (``None``: it cannot).
+
+        Only a PCA9685 channel has one: a Donkeycar controller object or an async-only output lives in this
+        process alone. The pulse is the neutral one as it is now, at the drive's start."""
+        ch = self._channel
+        if ch is None:
+            return None
+        return ch.safety_route(pulse_to_ticks(self.neutral_pulse, self._scale, self._inverted))
+
+    def output_overridden(self) -> None:
+        """Someone else (the safety process) wrote the output: write our own target again (on the loop thread)."""
+        self.written_pulse = None
+        w = self._wake
+        if w is not None and not w.done():
+            w.set_result(None)
 
     def command_deadline(self) -> float:
         """When the current command goes stale on the runtime clock (``inf``: no failsafe)."""
@@ -241,6 +269,13 @@ class _PWMPart:
 
     def attach(self, runtime: Any) -> None:
         """Called by the drive at its start (its latency recorder and watchdog) and with ``None`` at its end."""
+        if runtime is None and self._runtime is not None:
+            with self._wlock:  # the drive ends: an event still open ends with it
+                if self._now is not None:
+                    self.unsafe.closed(self._now())
+        elif runtime is not None:
+            self.unsafe = UnsafeTime()
+            self.unsafe.guard_last = getattr(runtime, "guard_last", None)
         self._runtime = runtime
         self._pending_origin = None
 
@@ -584,6 +619,13 @@ class PWMThrottle(_PWMPart):
             if fs is not None:
                 self._failsafe(stale, now, age)
         self._stale_at = stale_at
+        unsafe = self.unsafe
+        if stale:
+            with self._wlock:
+                unsafe.stale(stale_at, self.written_pulse == self.neutral_pulse)
+        elif unsafe.open_since is not None and throttle_age is not None:
+            with self._wlock:
+                unsafe.closed(now)  # a fresh command: the stale one's event ends, landed or not
         if self._tripped and not stale:
             self._tripped = False  # a fresh command after a watchdog event: drive again
         driving = not stale and self.armed
@@ -629,6 +671,8 @@ class PWMThrottle(_PWMPart):
         stale_at = self._stale_at
         if now >= stale_at:
             # the command went stale between ticks (or the tick stalled): stop without waiting for run()
+            with self._wlock:
+                self.unsafe.stale(stale_at, self.written_pulse == self.neutral_pulse)
             self._failsafe(True, now, now - stale_at + (self.failsafe_age_s or 0))
             self.pulse = self.neutral_pulse  # so the next fresh command counts as a change and wakes us
             return self.neutral_pulse, math.inf

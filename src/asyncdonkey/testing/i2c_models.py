@@ -36,9 +36,14 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
+import json
 import os
+import socket
+import socketserver
+import tempfile
 import threading
 import time
 import types
@@ -61,6 +66,7 @@ __all__ = [
     "MPU6050Model",
     "PCA9685Model",
     "RegisterDeviceModel",
+    "RemoteI2CSimulator",
     "SimulatedI2CBus",
     "SimulatedSMBus",
 ]
@@ -523,11 +529,19 @@ class SimulatedI2CBus:
 
 
 class I2CSimulator:
-    """A set of simulated I2C buses (by number) and the smbus2 factory that opens them."""
+    """A set of simulated I2C buses (by number) and the smbus2 factory that opens them.
+
+    :meth:`serve` makes the buses reachable from other processes (:class:`RemoteI2CSimulator`), as a real
+    ``/dev/i2c-N`` is reachable from every process on a Raspberry Pi: the car in one process and its safety
+    process in another then drive one register model, which the test reads in its own.
+    """
 
     def __init__(self) -> None:
         self.buses: dict[int, SimulatedI2CBus] = {}
         self._lock = threading.Lock()
+        #: the Unix socket other processes reach these buses at (``None`` until :meth:`serve`)
+        self.endpoint: str | None = None
+        self._server: _BusServer | None = None
 
     def bus(self, number: int = 1) -> SimulatedI2CBus:
         """The simulated adapter ``number`` (``/dev/i2c-<number>``), created on first use."""
@@ -536,6 +550,10 @@ class I2CSimulator:
             if b is None:
                 b = self.buses[number] = SimulatedI2CBus(number)
             return b
+
+    def adapter(self, number: int) -> SimulatedI2CBus | None:
+        """The adapter a :class:`SimulatedSMBus` opens as ``/dev/i2c-<number>`` (``None``: no such bus)."""
+        return self.buses.get(number)
 
     def attach(self, device: Any, address: int, bus: int = 1) -> Any:
         """Plug ``device`` in at ``address`` on bus ``bus``; returns the device."""
@@ -548,6 +566,183 @@ class I2CSimulator:
 
     def registry(self, **bus_kwargs: Any) -> I2CBusRegistry:
         """An :class:`~asyncdonkey.hw.i2c.I2CBusRegistry` whose buses are these simulated ones."""
+        return I2CBusRegistry(smbus_factory=self.smbus, **bus_kwargs)
+
+    def serve(self, path: str | None = None) -> str:
+        """Serve these buses on a Unix socket (a fresh temporary one unless ``path``); returns its path.
+
+        Each transaction from another process runs on this process's bus objects, under the same adapter lock
+        as local ones, so the models see one bus, whoever drives it. Idempotent; :meth:`close` stops serving.
+        """
+        with self._lock:
+            if self._server is None:
+                if path is None:
+                    folder = tempfile.mkdtemp(prefix="asyncdonkey-i2c-")
+                    path = os.path.join(folder, "i2c.sock")
+                self._server = _BusServer(path, self)
+                threading.Thread(target=self._server.serve_forever, name="i2c-simulator-server", daemon=True).start()
+                self.endpoint = path
+            return self.endpoint  # type: ignore[return-value]
+
+    def close(self) -> None:
+        """Stop serving (connected clients' next transactions fail with EIO)."""
+        with self._lock:
+            server, self._server = self._server, None
+            path, self.endpoint = self.endpoint, None
+        if server is not None:
+            server.shutdown()
+            server.server_close()
+            for conn in list(server.connections):
+                with contextlib.suppress(OSError):
+                    conn.shutdown(socket.SHUT_RDWR)
+            if path is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(path)
+                    os.rmdir(os.path.dirname(path))
+
+    def __enter__(self) -> I2CSimulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ------------------------------------------------------------------ the buses, served to other processes
+#
+# One JSON object a line each way over a Unix stream socket. A request is {"bus": N, "kind": str, "messages":
+# [[address, read, hex data or read length], ...]} and its answer {"ok": [hex, ...]} (what each message read)
+# or {"errno": E}; {"buses": true} answers {"buses": [N, ...]}. JSON keeps the wire readable in a capture and
+# needs nothing but the standard library on either side.
+
+
+class _BusHandler(socketserver.StreamRequestHandler):
+    server: _BusServer
+
+    def setup(self) -> None:
+        super().setup()
+        self.server.connections.add(self.connection)
+
+    def finish(self) -> None:
+        self.server.connections.discard(self.connection)
+        super().finish()
+
+    def handle(self) -> None:
+        sim = self.server.simulator
+        for line in self.rfile:
+            request = json.loads(line)
+            if request.get("buses"):
+                answer: dict[str, Any] = {"buses": sorted(sim.buses)}
+            else:
+                answer = self._transaction(sim, request)
+            self.wfile.write(json.dumps(answer).encode() + b"\n")
+
+    @staticmethod
+    def _transaction(sim: I2CSimulator, request: dict[str, Any]) -> dict[str, Any]:
+        bus = sim.adapter(int(request["bus"]))
+        if bus is None:
+            return {"errno": errno.ENODEV}
+        messages = [
+            (int(addr), bool(read), int(payload) if read else bytes.fromhex(payload))
+            for addr, read, payload in request["messages"]
+        ]
+        try:
+            results = bus.transaction(str(request["kind"]), messages)
+        except OSError as exc:
+            return {"errno": exc.errno or errno.EIO}
+        return {"ok": [r.hex() for r in results]}
+
+
+class _BusServer(socketserver.ThreadingUnixStreamServer):
+    daemon_threads = True
+
+    def __init__(self, path: str, simulator: I2CSimulator) -> None:
+        self.simulator = simulator
+        self.connections: set[socket.socket] = set()
+        super().__init__(path, _BusHandler)
+
+
+class _RemoteAdapter:
+    """One bus of a served simulator, seen from another process: ``transaction()`` as on the local adapter."""
+
+    def __init__(self, endpoint: str, number: int) -> None:
+        self.endpoint = endpoint
+        self.number = number
+        self._lock = threading.Lock()
+        self._sock: socket.socket | None = None
+        self._rfile: Any = None
+
+    def _connect(self) -> None:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.connect(self.endpoint)
+        self._sock, self._rfile = sock, sock.makefile("rb")
+
+    def transaction(self, kind: str, messages: Sequence[tuple[int, bool, bytes | int]]) -> list[bytes]:
+        wire = [[a, r, int(p) if r else bytes(p).hex()] for a, r, p in messages]  # type: ignore[arg-type]
+        request = json.dumps({"bus": self.number, "kind": kind, "messages": wire}).encode() + b"\n"
+        with self._lock:
+            try:
+                if self._sock is None:
+                    self._connect()
+                assert self._sock is not None
+                self._sock.sendall(request)
+                line = self._rfile.readline()
+            except OSError as exc:
+                self.close()
+                raise OSError(errno.EIO, f"simulated I2C bus {self.number} at {self.endpoint}: {exc}") from exc
+            if not line:
+                self.close()
+                raise OSError(errno.EIO, f"simulated I2C bus {self.number} at {self.endpoint}: server gone")
+        answer = json.loads(line)
+        if "errno" in answer:
+            err = int(answer["errno"])
+            raise OSError(err, os.strerror(err))
+        return [bytes.fromhex(h) for h in answer["ok"]]
+
+    def close(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.close()
+
+
+class RemoteI2CSimulator:
+    """The buses of an :class:`I2CSimulator` served by another process (:meth:`I2CSimulator.serve`).
+
+    Opens them through smbus2's own code exactly as the local simulator does, so a driver in a child process
+    (a car under test, its safety process) sees the same register models as the test that reads them::
+
+        buses = RemoteI2CSimulator(endpoint).registry()
+        throttle = PWMThrottle("PCA9685.1:40.0", buses=buses)
+    """
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
+        self._adapters: dict[int, _RemoteAdapter] = {}
+        self._known: list[int] | None = None
+        self._lock = threading.Lock()
+
+    def adapter(self, number: int) -> _RemoteAdapter | None:
+        with self._lock:
+            if self._known is None:
+                probe = _RemoteAdapter(self.endpoint, -1)
+                try:
+                    probe._connect()
+                    assert probe._sock is not None
+                    probe._sock.sendall(b'{"buses": true}\n')
+                    self._known = list(json.loads(probe._rfile.readline())["buses"])
+                finally:
+                    probe.close()
+            if number not in self._known:
+                return None
+            a = self._adapters.get(number)
+            if a is None:
+                a = self._adapters[number] = _RemoteAdapter(self.endpoint, number)
+            return a
+
+    def smbus(self, bus: int | str) -> SimulatedSMBus:
+        return SimulatedSMBus(bus, simulator=self)
+
+    def registry(self, **bus_kwargs: Any) -> I2CBusRegistry:
         return I2CBusRegistry(smbus_factory=self.smbus, **bus_kwargs)
 
 
@@ -568,7 +763,7 @@ class _OpenFile:
 
     __slots__ = ("address", "bus")
 
-    def __init__(self, bus: SimulatedI2CBus) -> None:
+    def __init__(self, bus: SimulatedI2CBus | _RemoteAdapter) -> None:
         self.bus = bus
         self.address = 0
 
@@ -699,7 +894,9 @@ class SimulatedSMBus(_smbus2_on_simulated_kernel()):  # type: ignore[misc]
     that is ours; ``ioctl`` calls on it are served by the simulator.
     """
 
-    def __init__(self, bus: int | str | None = None, force: bool = False, *, simulator: I2CSimulator) -> None:
+    def __init__(
+        self, bus: int | str | None = None, force: bool = False, *, simulator: I2CSimulator | RemoteI2CSimulator
+    ) -> None:
         self._simulator = simulator
         super().__init__(bus, force)
 
@@ -711,7 +908,7 @@ class SimulatedSMBus(_smbus2_on_simulated_kernel()):  # type: ignore[misc]
             number = int(bus[9:]) if bus.startswith("/dev/i2c-") and bus[9:].isdigit() else -1
         else:
             raise TypeError(f"Unexpected type(bus)={type(bus)}")
-        adapter = self._simulator.buses.get(number)
+        adapter = self._simulator.adapter(number)
         if adapter is None:
             raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), path)
         fd = os.open(os.devnull, os.O_RDWR)

@@ -209,6 +209,19 @@ def safety_rows(d: dict[str, Any]) -> list[Row]:
                 "",
             )
         )
+    for key, label in (("kill9_to_safe", "after kill -9"), ("gil_held_since_hang", "GIL held, since the hang")):
+        rows.append(
+            (
+                f"safety process, {label}",
+                "safe state, max (ms)",
+                _fmt(_get(d, "safety_process", key, "max_ms"), 1),
+                "never",
+                "",
+            )
+        )
+    rows.append(
+        ("safety process", "heartbeat per tick (ns)", _fmt(_get(d, "safety_process", "heartbeat_ns"), 0), "", "")
+    )
     o = _get(d, "provenance", "one_input", "added_ns")
     rows.append(("provenance", "added per part output (ns)", _fmt(o, 0), "", ""))
     o, t = _get(d, "overhead", "ours_us"), _get(d, "overhead", "donkeycar_us")

@@ -13,6 +13,11 @@
   pass-through test) against the plain store the loop did before (value + write time), for a one-input part and
   for a drive-mode selector (five inputs, two outputs); and the per-part loop overhead, flat out, beside
   Donkeycar's ``Vehicle.update_parts``.
+* **Safety process** (the car as a process of its own, ``tests/safety/guarded_car.py``, on a PCA9685 model this
+  process serves): after ``kill -9`` of the car, ms until both outputs show their safe pulses; with a catastrophic
+  regular expression holding the car's GIL in its pilot, ms from the hang's start to the stopped pulse (the
+  throttle's deadline falls at most 250 ms after the start: its last command came before). And what the car pays for it per tick: the heartbeat (one store, one load) and per
+  command the deadline (two stores), in ns.
 * **Simulated car** (``examples/car.py``, real time, uvloop): sensing-to-actuation latency of the simulated car
   (frame age at the tick + pilot inference + the write), p50/p99/max, from the drive's report.
 """
@@ -99,6 +104,92 @@ def watchdog(trials: int) -> dict:
             "since_block_p50_ms": float(np.percentile(since_block, 50)),
             "since_block_max_ms": float(np.max(since_block)),
         }
+    return out
+
+
+def _car_process(endpoint: str, scenario: str):
+    import subprocess
+
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "safety" / "guarded_car.py"), endpoint, scenario],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+
+
+def _until(cond, timeout: float) -> float | None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return time.monotonic()
+        time.sleep(0.0005)
+    return None
+
+
+def safety_process_trial(scenario: str) -> float:
+    """ms to the safe state: after kill -9 (``drive``), or after the stale deadline (``regex``)."""
+    import os
+    import signal
+
+    from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+    with I2CSimulator() as sim:
+        pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
+        car = _car_process(sim.serve(), scenario)
+        try:
+            assert car.stdout is not None
+            while car.stdout.readline().strip() != "driving":
+                pass
+            if scenario == "drive":
+                t0 = time.monotonic()
+                os.kill(car.pid, signal.SIGKILL)
+                safe = _until(lambda: pca.pulse(0) == NEUTRAL and pca.pulse(1) == 375, 10.0)
+            else:
+                while car.stdout.readline().strip() != "hang":
+                    pass
+                t0 = time.monotonic()  # the stale deadline is at most WINDOW_S later (the last command came before)
+                safe = _until(lambda: pca.pulse(0) == NEUTRAL, 10.0)
+            assert safe is not None
+            return (safe - t0) * 1e3
+        finally:
+            car.kill()
+            car.communicate()
+
+
+def safety_process(trials: int, n: int) -> dict:
+    from asyncdonkey.hw.pca9685 import open_pwm_channel
+    from asyncdonkey.safety import GuardedOutput, SafetyProcess
+    from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+    out: dict = {}
+    for scenario, key in (("drive", "kill9_to_safe"), ("regex", "gil_held_since_hang")):
+        ms = [safety_process_trial(scenario) for _ in range(trials)]
+        out[key] = {"trials": trials, "p50_ms": float(np.percentile(ms, 50)), "max_ms": float(np.max(ms))}
+    with I2CSimulator() as sim:
+        sim.attach(PCA9685Model(), address=0x40, bus=1)
+        sim.serve()
+        ch = open_pwm_channel("PCA9685.1:40.0", buses=sim.registry())
+        guard = SafetyProcess([GuardedOutput("throttle", ch.safety_route(NEUTRAL) or {}, None)], 10.0)
+        guard.start()
+        try:
+            guard.ticking()
+            beat, set_deadline = guard.beat, guard.deadline_setter(0)
+            t = time.monotonic()
+
+            def per_call_ns(fn, arg) -> float:
+                best = float("inf")
+                for _ in range(5):
+                    t0 = time.perf_counter_ns()
+                    for _ in range(n):
+                        fn(arg)
+                    best = min(best, (time.perf_counter_ns() - t0) / n)
+                return best
+
+            out["heartbeat_ns"] = per_call_ns(beat, t)
+            out["deadline_ns"] = per_call_ns(set_deadline, t + 60.0)
+        finally:
+            guard.stop()
     return out
 
 
@@ -204,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     results = {
         "machine": describe(),
         "watchdog": watchdog(3 if args.quick else 10),
+        "safety_process": safety_process(3 if args.quick else 10, 20_000 if args.quick else 200_000),
         "provenance": provenance(20_000 if args.quick else 200_000),
         "overhead": loop_overhead(5_000 if args.quick else 20_000),
         "sim_car": sim_car_latency(5.0 if args.quick else 15.0),
@@ -218,6 +310,13 @@ def main(argv: list[str] | None = None) -> int:
             f"(max {w['after_deadline_max_ms']:.1f}), {w['since_block_p50_ms']:.0f} ms after the block began "
             f"(max {w['since_block_max_ms']:.0f}); {w['trials']} trials"
         )
+    sp = results["safety_process"]
+    for key, what in (("kill9_to_safe", "after kill -9"), ("gil_held_since_hang", "GIL held, since the hang began")):
+        f = sp[key]
+        print(f"safety process, {what}: safe {f['p50_ms']:.1f} ms (max {f['max_ms']:.1f}); {f['trials']} trials")
+    print(
+        f"safety process, car's cost: heartbeat {sp['heartbeat_ns']:.0f} ns a tick, deadline {sp['deadline_ns']:.0f} ns"
+    )
     for label, p in results["provenance"].items():
         print(
             f"provenance, {label}: store {p['with_origins_ns']:.0f} ns with origins vs {p['plain_ns']:.0f} ns plain "

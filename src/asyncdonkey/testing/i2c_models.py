@@ -628,13 +628,16 @@ class _BusHandler(socketserver.StreamRequestHandler):
 
     def handle(self) -> None:
         sim = self.server.simulator
-        for line in self.rfile:
-            request = json.loads(line)
-            if request.get("buses"):
-                answer: dict[str, Any] = {"buses": sorted(sim.buses)}
-            else:
-                answer = self._transaction(sim, request)
-            self.wfile.write(json.dumps(answer).encode() + b"\n")
+        try:
+            for line in self.rfile:
+                request = json.loads(line)
+                if request.get("buses"):
+                    answer: dict[str, Any] = {"buses": sorted(sim.buses)}
+                else:
+                    answer = self._transaction(sim, request)
+                self.wfile.write(json.dumps(answer).encode() + b"\n")
+        except OSError:  # the client went away mid-request (a car killed with SIGKILL): nothing to answer
+            return
 
     @staticmethod
     def _transaction(sim: I2CSimulator, request: dict[str, Any]) -> dict[str, Any]:

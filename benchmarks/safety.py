@@ -16,8 +16,8 @@
 * **Safety process** (the car as a process of its own, ``tests/safety/guarded_car.py``, on a PCA9685 model this
   process serves): after ``kill -9`` of the car, ms until both outputs show their safe pulses; with a catastrophic
   regular expression holding the car's GIL in its pilot, ms from the hang's start to the stopped pulse (the
-  throttle's deadline falls at most 250 ms after the start: its last command came before). And what the car pays for it per tick: the heartbeat (one store, one load) and per
-  command the deadline (two stores), in ns.
+  throttle's deadline falls at most 250 ms after the start: its last command came before). And what the car
+  pays for it: per tick the heartbeat (one store, one load), per command the deadline (two stores), in ns.
 * **Simulated car** (``examples/car.py``, real time, uvloop): sensing-to-actuation latency of the simulated car
   (frame age at the tick + pilot inference + the write), p50/p99/max, from the drive's report.
 """

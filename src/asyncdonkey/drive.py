@@ -378,6 +378,8 @@ class Drive:
                     args = e.args()
                     r = e.call(*args)
                     if e.awaits:
+                        if beat is not None:  # the loop is free while it awaits: only the part's timeout bounds it
+                            beat(t + e.timeout if e.timeout is not None else math.inf)
                         self._awaiting = r
                         try:
                             r = yield r

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from asyncdonkey import Vehicle
 from asyncdonkey.hw.pca9685 import open_pwm_channel
 from asyncdonkey.safety import GuardedOutput, SafetyProcess
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
@@ -242,3 +243,94 @@ def test_a_stopped_heartbeat_centres_the_steering_and_a_live_one_lets_go(
         assert pca.pulse(STEERING) == 300
     finally:
         guard.stop()
+
+
+# --------------------------------------------------------------------------- the heartbeat, in a drive
+
+
+class Watcher:
+    """Records every change of a channel's pulse, from a thread of this process (the model is served here)."""
+
+    def __init__(self, pca: PCA9685Model, channel: int) -> None:
+        import threading
+
+        self.pca, self.channel = pca, channel
+        self.changes: list[tuple[float, int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last = None
+        while not self._stop.is_set():
+            p = self.pca.pulse(self.channel)
+            if p != last:
+                self.changes.append((time.monotonic(), p))
+                last = p
+            time.sleep(0.0005)
+
+    def stop(self) -> list[tuple[float, int]]:
+        self._stop.set()
+        self._thread.join()
+        return self.changes
+
+
+class Slow:
+    """A pilot whose every call takes ``seconds`` (sleeping, so the GIL is free)."""
+
+    def __init__(self, seconds: float, at: int | None = None) -> None:
+        self.seconds, self.at, self.k = seconds, at, 0
+        self.blocked: tuple[float, float] | None = None
+
+    def run(self) -> tuple[float, float]:
+        self.k += 1
+        if self.at is None or self.k == self.at:
+            t0 = time.monotonic()
+            time.sleep(self.seconds)
+            self.blocked = (t0, time.monotonic())
+        return 0.5, 0.5
+
+
+def _guarded_drive(sim: I2CSimulator, pilot: Slow, ticks: int, **add_kw) -> tuple[object, Vehicle]:
+    from asyncdonkey.loop import run_blocking
+    from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle
+
+    buses = sim.registry()
+    v = Vehicle(safety_process=True)
+    v.add(pilot, outputs=["angle", "throttle"], **add_kw)
+    v.add(PWMSteering("PCA9685.1:40.1", buses=buses), inputs=["angle"], name="steering")
+    # no failsafe window on the throttle: only the heartbeat covers it, with the shortest timeout (0.25 s)
+    v.add(PWMThrottle("PCA9685.1:40.0", buses=buses, arm_s=0, failsafe_age_s=None), inputs=["throttle"])
+    return run_blocking(v.run(20, max_loop_count=ticks)), v
+
+
+def test_a_slow_awaited_pilot_is_not_a_stopped_loop(served: tuple[I2CSimulator, PCA9685Model]) -> None:
+    """Every tick awaits a 0.4 s pilot in the executor: longer than the heartbeat timeout, but the loop is free."""
+    sim, pca = served
+    watcher = Watcher(pca, STEERING)
+    report, _ = _guarded_drive(sim, Slow(0.4), 6, executor=True)
+    changes = watcher.stop()
+    assert report.safety_process is not None
+    assert report.safety_process["outputs"] == ["steering", "PWMThrottle"]
+    assert report.safety_process["events"] == 0
+    pulses = [p for _, p in changes]
+    # steering went to 332 once its first command came, and stayed there until the drive's own shutdown
+    assert pulses[pulses.index(332) :] == [332, CENTRE], pulses
+
+
+def test_a_sync_part_holding_the_loop_stops_the_heartbeat(served: tuple[I2CSimulator, PCA9685Model]) -> None:
+    sim, pca = served
+    watcher = Watcher(pca, STEERING)
+    pilot = Slow(1.0, at=10)
+    report, v = _guarded_drive(sim, pilot, 20)
+    changes = watcher.stop()
+    assert pilot.blocked is not None
+    t0, t1 = pilot.blocked
+    centred = [t for t, p in changes if p == CENTRE and t0 <= t <= t1]
+    assert centred, changes
+    assert centred[0] - t0 < 0.25 + 0.3  # the heartbeat timeout after the tick began, with room for a busy machine
+    # once the loop is back, the car's own target is written again
+    assert any(p == 332 and t > t1 for t, p in changes), changes
+    sp = report.safety_process
+    assert sp is not None and sp["events"] >= 2 and sp["resyncs"] >= 1
+    assert "safety process: guarded steering, PWMThrottle; " in v.format_report(report)

@@ -11,7 +11,10 @@ What crosses to the guard, and when:
   safe pulse *the drive started with*, so a calibration changed during the drive cannot redefine "safe"), the
   heartbeat timeout and the car's pid; the guard answers ``ready`` once it has opened every bus;
 * every tick, the heartbeat: one 8-byte store into shared memory, and one 8-byte load of the guard's write
-  total (the per-tick cost is in ``benchmarks/safety.py``);
+  total (the per-tick cost is in ``benchmarks/safety.py``). A tick that awaits a part (``executor=True``, an
+  async ``run``) leaves the loop free meanwhile, so before the await it stores a heartbeat that far ahead as the
+  part's ``timeout=`` (or forever): a slow pilot is not a stopped loop, and its commands' deadlines still count;
+  a sync part that holds the loop thread is, and the guard acts one heartbeat timeout after the tick began;
 * every command an actuator applies, its deadline (two stores);
 * at the end, ``stop`` on its stdin; it writes every safe state once more and answers with its figures.
 

@@ -45,7 +45,8 @@ def test_every_type_round_trips(tmp_path):
         depth = (np.arange(12 * 16, dtype=np.uint16).reshape(12, 16) * 300 + i).astype(np.uint16)
         values = (scene(i), 0.25 * i - 0.5, np.float32(0.5), "user", bool(i % 2), np.int64(i), np.arange(3.0) + i,
                   [i, "x"], (1.5, np.float32(2.5)), depth)  # fmt: skip
-        assert w.run(*values) == i + 1  # the tub's record count, like Donkeycar's current_index
+        assert w.run(*values) == i  # the records in the tub (Donkeycar's current_index); this one is only queued
+        assert w.flush(5)
         sent.append(values)
     w.shutdown()
     assert w.stats.written == 5 and w.stats.durable == 5 and w.stats.bad_values == 0
@@ -252,7 +253,7 @@ def test_a_second_session_appends_with_the_next_session_id(tmp_path):
     w.shutdown()
     w2 = TubWriter(root, metadata={"track": "home"})  # no inputs: append with the stored ones
     assert w2.inputs == ["user/angle"] and w2.session_id.endswith("_1")
-    assert w2.run(9.0) == 5
+    assert w2.run(9.0) == 4  # the records in the tub: the first session's; this one is only queued
     w2.shutdown()
     tub = Tub(root)
     recs = list(tub)
@@ -326,7 +327,7 @@ def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
     # the first record is being written (blocked), five wait, the rest were refused
     assert s.accepted in (5, 6) and s.dropped == 20 - s.accepted
     assert s.queue_high_water == 5
-    assert counts[-1] == s.accepted  # run() reports what the tub will hold
+    assert counts[-1] == 0  # run() reports the records written: none yet, the disk is gated
     disk.gate.set()
     w.shutdown()
     s = w.stats
@@ -460,7 +461,7 @@ async def test_records_a_drive_on_the_virtual_clock_with_simulated_timestamps(tm
     v.add(TubWiper(w.tub, num_records=1), inputs=["user/wipe"])
     report = await v.run(rate_hz=20, max_loop_count=200)
     assert report is not None
-    assert v.mem["tub/num_records"] == 100
+    assert v.mem["tub/num_records"] == 99  # written when the 100th was handed over (written just after)
     s = w.stats
     assert (s.written, s.durable, s.dropped) == (100, 100, 0)
     recs = list(Tub(tmp_path / "t"))

@@ -7,14 +7,22 @@ sync points after ``sync_every`` records or ``sync_interval_s`` seconds, command
 records, a draining ``shutdown()`` with a timeout, and on the virtual clock a hold on time while records are
 in hand (disk work takes no virtual time, like executor work). See ``docs/recording.md`` for the policies.
 
+A disk that answers with errors (full, failing) is retried at a bounded rate: after a failed write or sync
+point the thread leaves the disk alone for ``_RETRY_MIN_S``, doubling to ``_RETRY_MAX_S`` while the errors
+go on, and retries the failed sync point before any further record. Records meanwhile wait in the queue
+(and the newest are dropped once it is full, counted), so recording resumes by itself when space returns.
+
 What a recorder brings is its *sink*, the object that owns the files, used only from the writer thread:
 
 * ``write(t, payload)``: write one record (``t`` is what the recorder queued as the record's time);
   raising ``OSError`` counts the record as failed;
-* ``sync() -> bool``: make what was written durable (False: nothing to do); ``unsynced`` (records written
-  since the last sync point) and ``sync_requested`` (a sync point is wanted now);
+* ``sync() -> bool``: make what was written durable (False: nothing to do; raising ``OSError`` leaves the
+  records unsynced, and the sync point is retried); ``unsynced`` (records written since the last sync
+  point) and ``sync_requested`` (a sync point is wanted now);
 * ``close()``: a last sync, then close the files;
-* ``durable``, ``syncs``, ``bad_values``: counters read for :attr:`BackgroundWriter.stats`.
+* ``durable``, ``syncs``, ``bad_values``: counters read for :attr:`BackgroundWriter.stats`; optionally
+  ``lost``: records ``write()`` took that never reached the file (an MCAP chunk the disk had no room for at
+  close), moved from ``written`` to ``failed``.
 """
 
 from __future__ import annotations
@@ -48,6 +56,14 @@ _LATENCY_WINDOW = 4096
 _POLL_BUSY_S = 0.005
 _POLL_IDLE_S = 0.05
 _BUSY_WINDOW_S = 1.0
+#: The pause after a failed write or sync point: 50 ms after the first error, doubling to 1 s while errors go
+#: on. Retrying at once would spin on a full disk (each attempt fails in microseconds); the cap bounds how long
+#: recording waits once space is back.
+_RETRY_MIN_S = 0.05
+_RETRY_MAX_S = 1.0
+#: How long ``shutdown()`` still waits, after giving up on the queue, for the thread to close the files (so
+#: that the summary it logs counts what closing lost). The thread is then usually in a pause, which ends at once.
+_CLOSE_WAIT_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -60,13 +76,15 @@ class WriterStats:
     accepted: int
     """records ``run()`` took."""
     written: int
-    """records handed to the files (a tub's catalog line, an MCAP message)."""
+    """records handed to the files (a tub's catalog line, an MCAP tick's messages). An MCAP tick is in the file
+    from the sync point that ends its chunk; ticks of a chunk the disk never took are moved to ``failed`` when
+    the file is closed, so after ``shutdown()`` this is exactly what the file holds."""
     durable: int
     """records covered by a completed sync point."""
     dropped: int
     """records ``run()`` refused because the queue was full (drop newest)."""
     failed: int
-    """records lost to write errors (e.g. a full disk)."""
+    """records lost to write errors (e.g. a full disk): not in the files."""
     abandoned: int
     """records still queued when ``shutdown()`` gave up waiting."""
     bad_values: int
@@ -148,6 +166,12 @@ class BackgroundWriter:
         self._latency_max = 0.0
         self._oldest_unsynced: float | None = None  # run() time of the first record since the last sync
         self._dropped_logged = 0
+        # disk errors (writer thread): the pause before the next attempt, see _RETRY_MIN_S
+        self._retry_at = 0.0  # monotonic time of the next attempt; 0 while the disk answers
+        self._backoff = 0.0
+        self._failing_since: float | None = None
+        self._sync_failed = False  # the last sync point failed: it is retried before any further record
+        self._give_up = False  # a disk error during shutdown: what is still queued counts as failed
         # thread coordination
         self._wake = threading.Event()
         self._release_time: Callable[[], None] = lambda: None  # undoes the virtual clock's hold, if any
@@ -196,27 +220,33 @@ class BackgroundWriter:
         return virtual_now
 
     def _has_unwritten(self) -> bool:
-        """Records or commands handed over and not yet written (read from the loop thread)."""
+        """Records or commands handed over and not yet written (read from the loop thread). False while the
+        thread pauses after a disk error: virtual time does not wait for a broken disk (records then queue up
+        and the newest are dropped, as on the real clock)."""
+        if self._retry_at:
+            return False
         return bool(self._queue) or self._accepted > self._written + self._failed
 
     # ---------------------------------------------------------------------------------- commands
     def flush(self, timeout: float | None = None) -> bool:
         """Block until every record accepted so far is written and durable. Not for the drive loop's thread.
 
-        Returns False on timeout (or when the writer has stopped).
+        Returns False on timeout, when the sync point failed (a full disk) or when the writer has stopped.
         """
         if self._closed or not self._thread.is_alive():
             return False
         done = threading.Event()
+        synced = [False]
 
         def sync_and_signal() -> None:
             try:
                 self._sync()
+                synced[0] = not self._sync_failed
             finally:
                 done.set()
 
         self._command(sync_and_signal)
-        return done.wait(timeout)
+        return done.wait(timeout) and synced[0]
 
     def _command(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._closed:
@@ -235,6 +265,16 @@ class BackgroundWriter:
         last_record = -_BUSY_WINDOW_S
         try:
             while not self._abandon:
+                if self._retry_at:  # the disk answered with an error
+                    if self._give_up:
+                        self._fail_queued()
+                        break
+                    if not self._closing and self._pause():
+                        continue
+                    if self._sync_failed:  # retry the sync point first: records wait until it succeeds
+                        sync_due = self._sync(sync_due)
+                        continue
+                    # else the next record is the retry
                 try:
                     t_wall, t_mono, payload = q.popleft()
                 except IndexError:
@@ -262,12 +302,19 @@ class BackgroundWriter:
                     app.write(t_wall, payload)
                 except OSError as exc:
                     self._failed += 1
-                    self._warn("write", "%s: a record was not written (%s); %d lost so far", exc, self._failed)
+                    pause = self._io_error()
+                    self._warn(
+                        "write", "%s: a record was not written (%s); next attempt in %.2f s; %d not written so far",
+                        exc, pause, self._failed,
+                    )  # fmt: skip
+                    continue  # the pause first: no sync point attempt right after a failure
                 except Exception as exc:  # a bug must not stop recording; say so loudly
                     self._failed += 1
                     logger.exception("%s: unexpected error writing a record: %r", self._label, exc)
                 else:
                     self._written += 1
+                    if self._retry_at:
+                        self._recovered()
                     if not q:
                         self._notify_idle()
                     last_record = mono()
@@ -288,7 +335,7 @@ class BackgroundWriter:
             try:
                 app.close()
             except Exception as exc:
-                logger.error("%s: final sync failed: %r", self._label, exc)
+                logger.error("%s: closing the files failed: %s", self._label, exc)
 
     def _run_command(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
         try:
@@ -297,7 +344,8 @@ class BackgroundWriter:
             logger.error("%s: %s failed: %r", self._label, getattr(fn, "__name__", fn), exc)
 
     def _sync(self, sync_due: float = 0.0) -> float:
-        """Run a sync point; returns the next sync deadline (a retry after an error)."""
+        """Run a sync point; returns the next sync deadline. After an error the thread pauses (``_io_error``)
+        and retries this sync point before any further record."""
         app = self._sink
         mono = time.monotonic
         t0 = mono()
@@ -305,17 +353,85 @@ class BackgroundWriter:
             did = app.sync()
         except OSError as exc:
             self._sync_errors += 1
-            self._warn("sync", "%s: sync point failed (%s); will retry; %d failures so far", exc, self._sync_errors)
+            self._sync_failed = True
+            pause = self._io_error()
+            self._warn(
+                "sync",
+                "%s: sync point failed (%s); %d records wait for it; next attempt in %.2f s; %d failures so far",
+                exc, app.unsynced, pause, self._sync_errors,
+            )  # fmt: skip
             return t0 + self._sync_interval
-        if did:
-            t1 = mono()
-            if t1 - t0 > self._sync_max:
-                self._sync_max = t1 - t0
-            oldest = self._oldest_unsynced
-            if oldest is not None:
-                self._durable_lag_max = max(self._durable_lag_max, t1 - oldest)
-                self._oldest_unsynced = None
+        self._sync_failed = False
+        if not did:
+            # nothing to do; a sink that still holds unsynced records is asked again a sync interval later,
+            # not at once (a deadline left in the past would spin the thread)
+            return t0 + self._sync_interval if app.unsynced else sync_due
+        if self._retry_at:
+            self._recovered()
+        t1 = mono()
+        if t1 - t0 > self._sync_max:
+            self._sync_max = t1 - t0
+        oldest = self._oldest_unsynced
+        if oldest is not None:
+            self._durable_lag_max = max(self._durable_lag_max, t1 - oldest)
+            self._oldest_unsynced = None
         return sync_due
+
+    # ---------------------------------------------------------------------------------- disk errors
+    def _io_error(self) -> float:
+        """Start or lengthen the pause after a failed write or sync point; returns its length in seconds.
+
+        During shutdown there is no pause: the error is the last attempt, and what is still queued then counts
+        as failed (waiting out ``drain_timeout_s`` against a disk that answers with errors helps nobody).
+        """
+        now = time.monotonic()
+        if self._failing_since is None:
+            self._failing_since = now
+        self._backoff = min(_RETRY_MAX_S, max(_RETRY_MIN_S, self._backoff * 2))
+        self._retry_at = now + self._backoff
+        if self._closing:
+            self._give_up = True
+        return self._backoff
+
+    def _pause(self) -> bool:
+        """Sleep until the next attempt after a disk error; True while it has not come (a wake-up, from
+        ``shutdown()`` or a record on the virtual clock, ends the sleep early and the loop asks again)."""
+        wait = self._retry_at - time.monotonic()
+        if wait <= 0:
+            return False
+        self._log_drops()
+        if self._wake.wait(wait):
+            self._wake.clear()
+        return True
+
+    def _recovered(self) -> None:
+        """A write or sync point worked again: end the pauses and say how long the disk was failing."""
+        since = self._failing_since
+        self._retry_at = 0.0
+        self._backoff = 0.0
+        self._failing_since = None
+        if since is not None:
+            self._warn(
+                "resumed", "%s: writing again after %.1f s of disk errors (%d records not written, %d dropped so far)",
+                time.monotonic() - since, self._failed, self._dropped,
+            )  # fmt: skip
+
+    def _fail_queued(self) -> None:
+        """Shutdown met a failing disk: count what is still queued as failed instead of waiting for space.
+        Commands still run (a ``flush()`` caller gets its answer)."""
+        if self._abandon:  # shutdown() gave up first and counted the queue as abandoned
+            return
+        q = self._queue
+        n = 0
+        while q:
+            t_wall, fn, args = q.popleft()
+            if t_wall is None:
+                self._run_command(fn, args)
+            else:
+                n += 1
+        self._failed += n
+        if n:
+            logger.error("%s: %d queued records not written: the disk failed during shutdown", self._label, n)
 
     def _log_drops(self) -> None:
         dropped = self._dropped
@@ -358,6 +474,7 @@ class BackgroundWriter:
             logger.error(
                 "%s: %d queued records not written: the disk did not keep up before shutdown", self._label, left
             )
+            self._thread.join(_CLOSE_WAIT_S)
         s = self.stats
         level = logging.WARNING if (s.dropped or s.failed or s.abandoned or s.bad_values) else logging.INFO
         logger.log(
@@ -388,12 +505,13 @@ class BackgroundWriter:
             else {}
         )
         app = self._sink
+        lost = getattr(app, "lost", 0)
         return WriterStats(
             accepted=self._accepted,
-            written=self._written,
+            written=self._written - lost,
             durable=app.durable - self._base_index,
             dropped=self._dropped,
-            failed=self._failed,
+            failed=self._failed + lost,
             abandoned=self._abandoned,
             bad_values=app.bad_values,
             queued=sum(1 for e in list(self._queue) if e[0] is not None),

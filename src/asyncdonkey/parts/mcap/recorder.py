@@ -109,7 +109,7 @@ class McapRecorder(TickRecorder):
         jpeg_quality: JPEG quality of images (75, as the tub writer).
         compression: chunk compression, ``"zstd"``, ``"lz4"`` or ``"none"``.
         queue_size, sync_interval_s, sync_every, fsync, drain_timeout_s: as :class:`~asyncdonkey.parts.tub.TubWriter`.
-        open_file: opens the file for writing (tests simulate a full disk with it).
+        open_file: opens the file for writing, unbuffered (tests simulate a full disk with it).
 
     ``run()`` takes no inputs (it reads ``vehicle.mem``) and returns nothing; :attr:`stats` has the counters
     (``written`` counts ticks).

@@ -7,17 +7,28 @@ record by record and stops at the first torn record (:func:`~.reader.read_mcap`)
 most the open chunk: the records since the last sync point (``sync_interval_s``, 1 s by default). A closed
 file has the summary and opens with any MCAP tool.
 
-After a write error (a full disk) the file ends at the last complete chunk, possibly followed by a torn one;
-the sink stops writing (every later record counts as failed) instead of appending after a hole.
+A full disk. The ``mcap`` writer writes into a :class:`_Spool` (memory), and a sync point writes the spool to
+the file all or nothing: before writing it reserves the blocks (``fallocate`` keeping the file's size, on
+Linux), so a full disk is found before a byte is written; where reserving is not possible a write that fails
+half way is cut back to the end of the last complete record. Either way the file always ends at a record
+boundary, the chunk stays in memory and the next sync point retries it at the same offset (the offsets the
+``mcap`` writer recorded for its indexes stay true), and recording goes on once space is back. Each
+reservation also keeps room for a short ending (``DataEnd`` and a ``Footer`` without summary) behind the data,
+so a file closed on a full disk still ends cleanly: readers read it linearly to its end; only its summary
+(the index) and the ticks of the chunk that never got in are missing, the latter counted in :attr:`lost`.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import logging
 import os
 from collections.abc import Callable
 from typing import IO, Any
 
+from ..._libc import libc_function
+from ..tub.fileio import with_filename
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 
 __all__ = ["CLOCK_METADATA", "McapSink"]
@@ -30,6 +41,110 @@ CLOCK_METADATA = "asyncdonkey.clock"
 SESSION_METADATA = "asyncdonkey.session"
 PROFILE = ""
 
+_FALLOC_FL_KEEP_SIZE = 1
+_OFF_T = (ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64)
+#: ``fallocate`` with 64-bit offsets: ``fallocate64`` (glibc, every architecture), else ``fallocate`` where
+#: ``off_t`` is 64 bits wide anyway
+_FALLOCATE = libc_function("fallocate64", _OFF_T) or (
+    libc_function("fallocate", _OFF_T) if ctypes.sizeof(ctypes.c_long) == 8 else None
+)
+
+
+def _short_ending() -> bytes:
+    """``DataEnd``, a ``Footer`` naming no summary, and the closing magic: the least that ends an MCAP file
+    cleanly (a reader reads its data section to the footer; tools without an index read it linearly)."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import DataEnd, Footer
+    from mcap.writer import MCAP0_MAGIC
+
+    builder = RecordBuilder()
+    DataEnd(data_section_crc=0).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return builder.end() + MCAP0_MAGIC
+
+
+class _Spool:
+    """The bytes the ``mcap`` writer produces, kept in memory until :meth:`commit` writes them to the file.
+
+    ``write``/``tell``/``flush`` are what the writer needs of a stream (``tell`` counts committed and pending
+    bytes, so the offsets it records are the ones the bytes will have in the file). :meth:`commit` writes the
+    pending bytes all or none, see the module docstring.
+    """
+
+    def __init__(self, file: IO[bytes], path: str, end_reserve: int) -> None:
+        self._file = file
+        self._path = path
+        self._end_reserve = end_reserve
+        self._pending = bytearray()
+        self.committed = 0
+        """bytes in the file, all of them whole records"""
+        self._can_reserve = _FALLOCATE is not None
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        self._pending += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self.committed + len(self._pending)
+
+    def flush(self) -> None:
+        """Nothing: the bytes go to the file at :meth:`commit` only."""
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+    def commit(self, keep_end_reserve: bool = True) -> None:
+        """Write the pending bytes at the end of the file: all of them, or (raising ``OSError`` naming the
+        file) none, the file then still ending after the last complete record."""
+        if not self._pending:
+            return
+        data = bytes(self._pending)
+        self._reserve(len(data) + (self._end_reserve if keep_end_reserve else 0))
+        f = self._file
+        try:
+            f.seek(self.committed)
+            view = memoryview(data)
+            while view:
+                n = f.write(view)
+                if not n:
+                    raise OSError(errno.EIO, "write made no progress")
+                view = view[n:]
+            f.flush()
+        except OSError as exc:
+            self._cut_back()
+            raise with_filename(exc, self._path) from exc
+        self.committed += len(data)
+        self._pending.clear()
+
+    def discard(self) -> int:
+        """Forget the pending bytes; returns how many there were."""
+        n = len(self._pending)
+        self._pending.clear()
+        return n
+
+    def _reserve(self, length: int) -> None:
+        """Allocate ``length`` bytes after the committed end without changing the file's size, so that writing
+        them cannot fail for want of space. Raises ``OSError(ENOSPC)`` on a full disk, before anything is
+        written; does nothing where the OS or the file system cannot (the write then finds out)."""
+        if not self._can_reserve or _FALLOCATE is None:
+            return
+        if _FALLOCATE(self._file.fileno(), _FALLOC_FL_KEEP_SIZE, self.committed, length) == 0:
+            return
+        err = ctypes.get_errno()
+        if err in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.ENODEV):
+            self._can_reserve = False  # a file system without it (or not a regular file): write and see
+            return
+        raise OSError(err, os.strerror(err), self._path)
+
+    def _cut_back(self) -> None:
+        """Remove a partial write, so the file ends after its last complete record again."""
+        try:
+            self._file.truncate(self.committed)
+            self._file.seek(self.committed)
+        except OSError as exc:  # pragma: no cover - truncating frees space, it does not need any
+            logger.error("%s: could not cut off a partial write: %r", self._path, exc)
+
 
 class McapSink:
     """One MCAP file, written from one thread.
@@ -40,8 +155,10 @@ class McapSink:
         metadata: string key/values saved as the ``asyncdonkey.session`` metadata record.
         fsync: flush to the device at sync points.
         compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
-        chunk_size: bytes after which a chunk is ended even between sync points.
-        open_file: opens the file (tests pass one that fails like a full disk).
+        chunk_size: bytes after which a chunk is ended even between sync points (and a sync point asked for).
+        open_file: opens the file, unbuffered (tests pass one that fails like a full disk).
+
+    Raises ``OSError`` when the file cannot be created with its header (a disk already full).
     """
 
     def __init__(
@@ -63,16 +180,23 @@ class McapSink:
         self.path = os.fspath(path)
         self.encoder = encoder
         self.fsync = fsync
+        self._chunk_size = chunk_size
+        self._ending = _short_ending()
         self._file: IO[bytes] = (open_file or _open)(self.path)
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp[compression])
+        self._spool = _Spool(self._file, self.path, len(self._ending))
+        self._writer = Writer(self._spool, chunk_size=chunk_size, compression=comp[compression])  # type: ignore[arg-type]
         self._writer.start(profile=PROFILE, library="asyncdonkey")
+        try:
+            self._spool.commit()
+        except OSError:
+            self._file.close()
+            raise
         self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[str, int] = {}
         self.times: TimeMap | None = None
         """set by the recorder before it queues the first tick"""
         self._anchored = False
-        self._broken: OSError | None = None
         self._closed = False
         # counters read by BackgroundWriter.stats
         self.unsynced = 0
@@ -80,7 +204,10 @@ class McapSink:
         self.durable = 0
         self.syncs = 0
         self.messages = 0
+        self.lost = 0
+        """ticks :meth:`write` took whose chunk never reached the file (the disk was full at :meth:`close`)"""
         self._written = 0
+        self._in_file = 0  # ticks whose chunk is in the file (committed), durable or not
 
     @property
     def bad_values(self) -> int:
@@ -99,65 +226,90 @@ class McapSink:
         return cid
 
     def write(self, t: float, payload: tuple[Any, ...]) -> None:
-        """Write one tick's messages (a :class:`~.encode.TickSnapshot` as a tuple) into the open chunk."""
+        """Add one tick's messages (a :class:`~.encode.TickSnapshot` as a tuple) to the open chunk (memory; the
+        file is written at sync points)."""
         snap = TickSnapshot(*payload)
-        if self._broken is not None:
-            raise OSError(f"{self.path}: not written after an earlier write error ({self._broken})")
         times = self.times
         if times is None:  # pragma: no cover - the recorder sets it before queueing
             raise RuntimeError(f"{self.path}: no time anchor")
         w = self._writer
-        try:
-            if not self._anchored:
-                w.add_metadata(CLOCK_METADATA, times.as_metadata())
-                if self._metadata:
-                    w.add_metadata(SESSION_METADATA, self._metadata)
-                self._anchored = True
-            for spec, data, log_ns, pub_ns in self.encoder.encode(snap, times):
-                w.add_message(self._channel(spec), log_ns, data, pub_ns)
-                self.messages += 1
-        except OSError as exc:
-            self._broken = exc
-            raise
+        if not self._anchored:
+            w.add_metadata(CLOCK_METADATA, times.as_metadata())
+            if self._metadata:
+                w.add_metadata(SESSION_METADATA, self._metadata)
+            self._anchored = True
+        for spec, data, log_ns, pub_ns in self.encoder.encode(snap, times):
+            w.add_message(self._channel(spec), log_ns, data, pub_ns)
+            self.messages += 1
         self._written += 1
         self.unsynced += 1
+        if self._spool.pending >= self._chunk_size:
+            self.sync_requested = True  # a chunk ended by size: write it out rather than hold it in memory
 
     def sync(self) -> bool:
-        """End the open chunk, hand it to the OS and (with ``fsync``) to the device."""
+        """End the open chunk and write it to the file, then (with ``fsync``) to the device.
+
+        Raises ``OSError`` naming the file when the disk has no room (nothing of the chunk is then in the file;
+        it is kept and the next sync point retries it) or the flush fails.
+        """
         self.sync_requested = False
-        if not self.unsynced or self._broken is not None:
+        if not self.unsynced:
             return False
-        try:
-            self._writer.flush()
-            if self.fsync:
+        self._writer.flush()  # ends the chunk into the spool: memory only
+        self._spool.commit()
+        self._in_file = self._written
+        if self.fsync:
+            try:
                 os.fsync(self._file.fileno())
-        except OSError as exc:
-            self._broken = exc
-            raise
+            except OSError as exc:
+                raise with_filename(exc, self.path) from exc
         self.unsynced = 0
         self.durable = self._written
         self.syncs += 1
         return True
 
     def close(self) -> None:
-        """Write the summary (indexes, statistics) and close. Safe to call twice."""
+        """Write the summary (indexes, statistics) and close. Safe to call twice.
+
+        On a full disk the ticks not yet in the file are counted in :attr:`lost`, the file gets the short
+        ending instead (see the module docstring) and ``OSError`` says what happened.
+        """
         if self._closed:
             return
         self._closed = True
         try:
-            if self._broken is None:
-                self._writer.finish()  # ends the open chunk and writes the summary and footer
-                self.durable = self._written
-                self.unsynced = 0
-                if self.fsync:
-                    self._file.flush()
-                    os.fsync(self._file.fileno())
+            self._writer.finish()  # ends the open chunk and adds the summary and footer, into the spool
+            try:
+                self._spool.commit(keep_end_reserve=False)
+            except OSError as exc:
+                raise self._close_short(exc) from exc
+            self._in_file = self.durable = self._written
+            self.unsynced = 0
+            if self.fsync:
+                os.fsync(self._file.fileno())
         finally:
             try:
                 self._file.close()
             except OSError as exc:
                 logger.error("%s: closing failed: %r", self.path, exc)
 
+    def _close_short(self, exc: OSError) -> OSError:
+        """The disk has no room for the rest: end the file after its last complete chunk; returns the error to
+        raise, which says how many ticks are lost and how the file ends."""
+        self._spool.discard()
+        self.lost = self._written - self._in_file
+        self.unsynced = 0
+        self._spool.write(self._ending)
+        try:
+            self._spool.commit(keep_end_reserve=False)
+            if self.fsync:
+                os.fsync(self._file.fileno())
+            how = "it ends after its last complete chunk, without a summary (readers read it linearly)"
+        except OSError:
+            self._spool.discard()
+            how = "it ends after its last complete chunk, without a footer (readers stop there)"
+        return OSError(exc.errno, f"{exc.strerror or exc}: {self.lost} ticks not written; {how}", self.path)
+
 
 def _open(path: str) -> IO[bytes]:
-    return open(path, "wb")
+    return open(path, "wb", buffering=0)

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from .encode import json_default, make_converter
-from .fileio import TubFileIO
+from .fileio import TubFileIO, with_filename
 from .format import (
     IMAGE_EXTENSIONS,
     IMAGES_DIR,
@@ -182,6 +182,7 @@ class TubAppender:
         self.durable = self.index
         self.bad_values = 0
         self.syncs = 0
+        self.lost = 0  # a record is in the tub once its line is written: none is lost after write() returned
 
     # ---------------------------------------------------------------------------------------- opening
     def _create(self, inputs: list[str], types: list[str], metadata: dict[str, Any], max_len: int) -> ManifestData:
@@ -295,8 +296,9 @@ class TubAppender:
     def write(self, t_wall: float, values: Sequence[Any]) -> int:
         """Write one record (images first, then its catalog line); returns its index.
 
-        Raises ``OSError`` when a file cannot be written; the record is then not in the tub and its index is
-        given to the next record (no gaps: Donkeycar's reader counts positions).
+        Raises ``OSError`` when a file cannot be written; the record is then not in the tub (its image files
+        are removed, a partial line is cut off) and its index is given to the next record (no gaps:
+        Donkeycar's reader counts positions). :attr:`index` counts only records whose line was written.
         """
         if self._needs_truncate:
             self.io.truncate(self._fd, self._size)
@@ -304,6 +306,30 @@ class TubAppender:
         if len(self._lengths) >= self.max_len:
             self._roll_over()
         idx = self.index
+        images: list[str] = []
+        try:
+            rec = self._record(idx, t_wall, values, images)
+            try:
+                text = json.dumps(rec, allow_nan=False, sort_keys=True, default=json_default)
+            except (TypeError, ValueError):
+                text = self._dumps_dropping_bad(rec)
+            line = (text + "\n").encode("ascii")
+            self._append_line(line)
+        except OSError:
+            self._remove_quietly(images)
+            raise
+        self._pending_images.extend(images)
+        self._size += len(line)
+        self._lengths.append(len(line))
+        self.index = idx + 1
+        self._unsynced += 1
+        if not self._listed:
+            self.sync_requested = True  # list a new catalog as soon as it has a line
+        return idx
+
+    def _record(self, idx: int, t_wall: float, values: Sequence[Any], images: list[str]) -> dict[str, Any]:
+        """The record's catalog entry, its image files written first (each path goes into ``images`` before
+        its write, so a failed record's files, a partial one included, can be removed)."""
         rec: dict[str, Any] = {}
         for (key, conv, ext), v in zip(self._plan, values, strict=True):
             if v is None:
@@ -318,32 +344,40 @@ class TubAppender:
             else:
                 name = image_file_name(idx, key, ext)
                 path = os.path.join(self._images, name)
-                self.io.write_file(path, out)
-                self._pending_images.append(path)
+                images.append(path)
+                self._write_file(path, out)
                 rec[key] = name
         rec["_index"] = idx
         rec["_session_id"] = self.session[1]
         rec["_timestamp_ms"] = round(t_wall * 1000)
-        try:
-            text = json.dumps(rec, allow_nan=False, sort_keys=True, default=json_default)
-        except (TypeError, ValueError):
-            text = self._dumps_dropping_bad(rec)
-        line = (text + "\n").encode("ascii")
+        return rec
+
+    def _append_line(self, line: bytes) -> None:
+        """Append a catalog line whole or not at all: a partial line (the disk filled mid-write) is cut off
+        so the next record does not merge with it. The error names the catalog."""
         try:
             self.io.append(self._fd, line)
-        except OSError:
-            try:  # undo a partial line so the next record does not merge with it
+        except OSError as exc:
+            try:
                 self.io.truncate(self._fd, self._size)
             except OSError:
                 self._needs_truncate = True
-            raise
-        self._size += len(line)
-        self._lengths.append(len(line))
-        self.index = idx + 1
-        self._unsynced += 1
-        if not self._listed:
-            self.sync_requested = True  # list a new catalog as soon as it has a line
-        return idx
+            raise with_filename(exc, self._catalog_path) from exc
+
+    def _write_file(self, path: str, data: bytes) -> None:
+        try:
+            self.io.write_file(path, data)
+        except OSError as exc:
+            raise with_filename(exc, path) from exc
+
+    def _remove_quietly(self, paths: Iterable[str]) -> None:
+        """Remove files of a write that failed (best effort: they are not referenced, and on a full disk the
+        space they hold is what the next attempt needs)."""
+        for path in paths:
+            try:
+                self.io.remove(path)
+            except OSError:
+                pass
 
     def _dumps_dropping_bad(self, rec: dict[str, Any]) -> str:
         for key in [k for k in rec if not k.startswith("_")]:
@@ -418,8 +452,8 @@ class TubAppender:
                 cm = CatalogManifest(
                     catalog_manifest_name(self._catalog), self._start, self._cat_created_at, self._lengths
                 )
-                io.write_file(cm_tmp, cm.encode())
-            io.write_file(man_tmp, m.encode())
+                self._write_file(cm_tmp, cm.encode())
+            self._write_file(man_tmp, m.encode())
             if self.fsync:
                 if io.has_syncfs:
                     io.sync_filesystem(self._fd)  # images, catalog lines and both temporaries in one flush
@@ -435,10 +469,11 @@ class TubAppender:
             io.replace(man_tmp, man_path)
             if self.fsync:
                 io.sync_dir(str(self.base))
-        except OSError:
+        except OSError as exc:
             if listing:
                 m.paths.pop()
-            raise
+            self._remove_quietly(p for p in (cm_tmp, man_tmp) if os.path.exists(p))
+            raise with_filename(exc, str(self.base)) from exc
         if listing:
             self._listed = True
         self._pending_images.clear()
@@ -462,7 +497,7 @@ class TubAppender:
 
     def _replace(self, path: str, data: bytes) -> None:
         tmp = path + TMP_SUFFIX
-        self.io.write_file(tmp, data)
+        self._write_file(tmp, data)
         if self.fsync:
             self.io.sync_path(tmp)
         self.io.replace(tmp, path)
@@ -475,11 +510,23 @@ class TubAppender:
         self._replace(str(self.base / MANIFEST_NAME), m.encode())
 
     def close(self) -> None:
-        """Sync what is left, then close the catalog. Safe to call twice."""
+        """Sync what is left, then close the catalog. Safe to call twice.
+
+        When the last sync point fails (a full disk), the records are still in the catalogs, which every reader
+        reads; only the manifests lag behind, until the tub is opened for writing again (or
+        :func:`repair_tub`). The ``OSError`` raised says so.
+        """
         if self._fd < 0:
             return
         try:
             self.sync()
+        except OSError as exc:
+            raise OSError(
+                exc.errno,
+                f"{exc.strerror or exc}: the last sync point failed; the catalogs hold {self.index} records, "
+                f"manifest.json counts {self.durable} (readers read the catalogs; reopening the tub repairs it)",
+                exc.filename,
+            ) from exc
         finally:
             self.io.close(self._fd)
             self._fd = -1

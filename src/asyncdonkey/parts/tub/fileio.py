@@ -18,11 +18,19 @@ import os
 
 from ..._libc import libc_function
 
-__all__ = ["TubFileIO"]
+__all__ = ["TubFileIO", "with_filename"]
 
 
 _SYNCFS = libc_function("syncfs", (ctypes.c_int,))
 _fdatasync = getattr(os, "fdatasync", os.fsync)
+
+
+def with_filename(exc: OSError, path: str) -> OSError:
+    """``exc`` naming ``path`` when it names no file (``os.write`` and ``fsync`` errors do not), so that the
+    warning a full disk causes says which file could not be written."""
+    if exc.filename is not None or exc.errno is None:
+        return exc
+    return OSError(exc.errno, exc.strerror or str(exc), path)
 
 
 class TubFileIO:

@@ -74,8 +74,10 @@ class TubWriter(BackgroundWriter):
             recordings made in simulation carry their simulated timing.
         file_io: file operations (tests inject a slow or full disk, see :class:`~.fileio.TubFileIO`).
 
-    ``run(*values)`` returns the number of records in the tub once everything accepted is written
-    (Donkeycar returns its ``current_index``, the same count), typically wired to ``tub/num_records``.
+    ``run(*values)`` returns the number of records in the tub: those whose catalog line has been written,
+    typically wired to ``tub/num_records``. A record still queued is counted once the writer thread has
+    written it (usually within 5 ms: Donkeycar, which writes inside ``run()``, returns one more), and one that
+    fails to write (a full disk) is never counted.
     """
 
     def __init__(
@@ -127,7 +129,8 @@ class TubWriter(BackgroundWriter):
 
     # ------------------------------------------------------------------------------------ the tick
     def run(self, *values: Any) -> int:
-        """Hand one record over to the writer thread; never blocks. Returns the tub's record count."""
+        """Hand one record over to the writer thread; never blocks. Returns the records written to the tub so
+        far (all sessions; not this one, which is only queued), never counting one that failed."""
         if len(values) != self._n:
             raise TypeError(f"{self._label}: expected {self._n} values for {self.inputs}, got {len(values)}")
         q = self._queue
@@ -136,14 +139,15 @@ class TubWriter(BackgroundWriter):
             if self._closed:
                 raise RuntimeError(f"{self._label}: run() after shutdown()")
             self._dropped += 1
-            return self._base_index + self._accepted
+            return self._appender.index
+        written = self._appender.index  # read before queueing: the count never includes this record
         if self._copy:
             values = _copied(values)
         q.append((self._now(), time.monotonic(), values))
         if n >= self._high_water:
             self._high_water = n + 1
         self._accepted += 1
-        return self._base_index + self._accepted
+        return written
 
     # ---------------------------------------------------------------------------------- commands
     @property

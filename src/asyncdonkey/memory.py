@@ -176,11 +176,12 @@ class Memory:
         return self.stamps.get(key)
 
     def origin(self, key: str) -> float | None:
-        """Runtime-clock time of the sensing behind ``key``'s value, or ``None`` if it was never written."""
+        """Runtime-clock time of the sensing behind ``key``'s value, or ``None`` if it was never written (or was
+        computed from channels with nothing sensed behind them, see ``docs/provenance.md``)."""
         return self.origins.get(key)
 
     def age(self, key: str, now: float | None = None) -> float:
-        """Seconds since the sensing behind ``key``'s value (``inf`` if never written); what ``@age`` gives."""
+        """Seconds since the sensing behind ``key``'s value (``inf`` if it has no origin); what ``@age`` gives."""
         t = self.origins.get(key)
         if t is None:
             return math.inf

@@ -97,7 +97,7 @@ class Pipeline:
             self.runs += 1
             try:
                 args = e.args()
-                origin = e.input_origin(t) if e.input_origin is not None else t
+                origin = e.input_origin() if e.input_origin is not None else t
                 r = e.call(*args)
                 if e.awaits:
                     r = await r

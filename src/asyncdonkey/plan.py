@@ -7,18 +7,23 @@ their *origin* (the time of the sensing behind them), the provenance rule:
 * a part that states its own origin (``output_origin()``: a camera, a sensor poller, a controller, a network
   receiver) gives its outputs that origin;
 * a part without inputs is a source: its outputs are sensed when it returns;
-* any other part's outputs inherit the **oldest** origin among its inputs, except that
-
-  - an output that *is* one of its inputs (the same object, not an equal one: a selector such as
-    ``DriveMode`` passing the user's command through) inherits that input's origin (if several inputs hold
-    that object, a live one before a dormant one, then the oldest);
-  - a channel never written, and a channel whose producing part was skipped by its ``run_condition`` on the
-    current tick, does not count.
+* any other part's outputs inherit the **oldest** origin among its inputs that count; a channel never written,
+  and a channel whose producing part was skipped by its ``run_condition`` on the current tick, does not count.
+  When no input counts, the oldest origin among all of them: a value is never younger than the sensing behind
+  it, so a pass-through after a switched-off pilot (``return t * 1.0``) publishes the pilot's old age, not
+  *now*. Nothing sensed at all (no input has an origin): the output has no origin, its age is infinite;
+* except that an output that *is* one of its inputs (the same object, not an equal one: a selector such as
+  ``DriveMode`` passing the user's command through) keeps that input's origin (if several inputs hold that
+  object, a live one before a dormant one, then the oldest), provided the object is immutable (a number, a
+  string, an enum, a tuple of those). A mutable one (an array, a list, a dict) may have been written into in
+  place with the other inputs' data (``np.add(frame, imu, out=frame); return frame``): it gets the older of its
+  own origin and the inherited one.
 
 So a selector neither hides a dead pilot behind a fresh gamepad (in ``local`` mode the pilot's command is
 a new object made from the pilot's old data: the pilot's age) nor makes a driver's fresh command look stale
 (in ``user`` mode the user's value is passed through; the skipped pilot does not count). The cost is one dict
-read per input and one identity test per (input, output) pair.
+read per input and one identity test per (input, output) pair, plus one type lookup for an output that is an
+input object; a part reading a single channel skips all that (its outputs have that channel's origin).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import enum
 import inspect
 import logging
 import math
+import sys
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
 
@@ -42,6 +48,16 @@ logger = logging.getLogger("asyncdonkey.loop")
 OnError = Literal["stop", "continue"]
 AGE_SUFFIX = "@age"
 _INF = math.inf
+#: the origin of a value with nothing sensed behind it (computed only from channels that have no origin): such an
+#: output is stored without an origin, so its age is infinite, as a never-written channel's
+_NEVER = -math.inf
+#: types whose instances cannot change: what ``_immutable`` has found so (numbers, strings, enums, numpy scalars),
+#: looked up directly on the hot path
+_IMMUTABLE_TYPES: set[type] = {int, float, bool, complex, str, bytes, type(None), range, type(Ellipsis)}
+#: immutable containers: as immutable as their items
+_CONTAINERS = (tuple, frozenset)
+#: every other type met: whether its instances cannot change (``_immutability_of``)
+_TYPE_KIND: dict[type, bool] = {}
 
 #: Classes whose ``shutdown()`` puts an actuator in its safe state, recognised so that Donkeycar's own
 #: actuator parts, used unchanged, are shut down in the first (safe-state) phase like ours.
@@ -106,9 +122,10 @@ class Entry:
         self.kicks: tuple[Any, ...] = ()
         self.trigger: str | None = None
         self.react = False
-        #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them) and a
-        #: store that writes the outputs with a given origin (the inputs may have moved on meanwhile)
-        self.input_origin: Callable[[float], float] | None = None
+        #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them; ``None``
+        #: for a part without inputs, a source sensed when it reads them) and a store that writes the outputs
+        #: with a given origin (the inputs may have moved on meanwhile)
+        self.input_origin: Callable[[], float] | None = None
         self.store_fixed: Callable[[Any, float, float], None] | None = None
 
 
@@ -218,7 +235,7 @@ def build_entry(
     e.args = _arg_getter(mem, ins)
     origin_fn = getattr(part, "output_origin", None)
     e.store = _storer(mem, name, ins, outs, origin_fn if callable(origin_fn) else None)
-    e.input_origin = _input_origin(mem, ins)
+    e.input_origin = _input_origin(mem, ins) if _input_channels(ins) else None
     e.store_fixed = _fixed_storer(mem, name, outs)
     shutdown = getattr(part, "shutdown", None)
     e.shutdown_fn = shutdown if callable(shutdown) else None
@@ -264,88 +281,41 @@ def _storer(
     outs: tuple[str, ...],
     stated: Callable[[], float | None] | None,
 ) -> Callable[[Any, Sequence[Any], float], None] | None:
-    """``store(result, args, now)``: write the outputs with their write time and origin (module docstring)."""
+    """``store(result, args, now)``: write the outputs with their write time and origin (module docstring).
+
+    Which of the rule's cases can apply is decided here, once: a source or a part that states its origin, a
+    part with one input channel (every output has that channel's origin, whatever the part did with it), or
+    the general case, where each output is first tested for being one of the inputs passed through.
+    """
     if not outs:
         return None
-    d, stamps, origins, dormant = mem.d, mem.stamps, mem.origins, mem.dormant
-    oget = origins.get
-    # inputs whose value may be passed through as an output: (argument index, channel)
-    passthrough = tuple((i, k) for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
-    sources = tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
-
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+    sources = _input_channels(ins)
     inherited = _input_origin(mem, ins)
-
-    def passed_through(value: Any, args: Sequence[Any]) -> float | None:
-        if value is None:
-            return None
-        o = None
-        live = False
-        for i, k in passthrough:
-            if args[i] is value:
-                # the same object may sit in several inputs (a small constant both a driver and a skipped
-                # pilot published): a live input wins over a dormant one, then the oldest
-                t = oget(k)
-                if t is None:
-                    continue
-                k_live = k not in dormant
-                if o is None or (k_live and not live) or (k_live == live and t < o):
-                    o, live = t, k_live
-        return o
-
     n = len(outs)
     unpack = _unpacker(name, outs)
-
     if stated is not None or not sources:
-        # sources and parts that state their origin: one origin for every output
-        def origin_of(now: float) -> float:
-            if stated is not None:
-                o = stated()
-                if o is not None:
-                    return o
-            return inherited(now) if sources else now
+        return _stated_storer(mem, outs, unpack, inherited if sources else None, stated)
+    if len(sources) == 1:
+        # one input channel: a value made from it, passed through or written into in place has only its
+        # sensing behind it, whether its producer ran this tick or not
+        return _one_input_storer(mem, outs, unpack, sources[0])
 
-        if n == 1:
-            (k1,) = outs
-
-            def store_stated_one(value: Any, args: Sequence[Any], now: float) -> None:
-                d[k1] = value
-                stamps[k1] = now
-                origins[k1] = origin_of(now)
-
-            return store_stated_one
-
-        def store_stated_many(values: Any, args: Sequence[Any], now: float) -> None:
-            values = unpack(values)
-            o = origin_of(now)
-            for k, v in zip(outs, values, strict=False):
-                d[k] = v
-                stamps[k] = now
-                origins[k] = o
-
-        return store_stated_many
-
-    if n == 1 and len(sources) == 1 and len(passthrough) == 1:
-        # the common case, one input feeding one output: its origin, unless its producer was skipped this
-        # tick and the output is not the input itself passed through
-        (k1,) = outs
-        ((i0, k0),) = passthrough
-
-        def store_one_from_one(value: Any, args: Sequence[Any], now: float) -> None:
-            d[k1] = value
-            stamps[k1] = now
-            t = oget(k0)
-            origins[k1] = now if t is None or (k0 in dormant and args[i0] is not value) else t
-
-        return store_one_from_one
+    origin_for = _output_origin(mem, ins, inherited)
 
     if n == 1:
         (k1,) = outs
 
         def store_one(value: Any, args: Sequence[Any], now: float) -> None:
-            o = passed_through(value, args)
+            o = origin_for(value, args)
+            if o is None:
+                o = inherited()
             d[k1] = value
             stamps[k1] = now
-            origins[k1] = inherited(now) if o is None else o
+            if o > _NEVER:
+                origins[k1] = o
+            else:
+                origins.pop(k1, None)
 
         return store_one
 
@@ -353,16 +323,151 @@ def _storer(
         values = unpack(values)
         common = None
         for k, v in zip(outs, values, strict=False):
-            o = passed_through(v, args)
+            o = origin_for(v, args)
             if o is None:
                 if common is None:
-                    common = inherited(now)
+                    common = inherited()
                 o = common
             d[k] = v
             stamps[k] = now
-            origins[k] = o
+            if o > _NEVER:
+                origins[k] = o
+            else:
+                origins.pop(k, None)
 
     return store_many
+
+
+def _stated_storer(
+    mem: Memory,
+    outs: tuple[str, ...],
+    unpack: Callable[[Any], Any],
+    inherited: Callable[[], float] | None,
+    stated: Callable[[], float | None] | None,
+) -> Callable[[Any, Sequence[Any], float], None]:
+    """Sources (``inherited`` is ``None``) and parts that state their origin: one origin for every output."""
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+
+    def origin_of(now: float) -> float:
+        if stated is not None:
+            o = stated()
+            if o is not None:
+                return o
+        return now if inherited is None else inherited()
+
+    if len(outs) == 1:
+        (k1,) = outs
+
+        def store_stated_one(value: Any, args: Sequence[Any], now: float) -> None:
+            d[k1] = value
+            stamps[k1] = now
+            o = origin_of(now)
+            if o > _NEVER:
+                origins[k1] = o
+            else:
+                origins.pop(k1, None)
+
+        return store_stated_one
+
+    def store_stated_many(values: Any, args: Sequence[Any], now: float) -> None:
+        values = unpack(values)
+        o = origin_of(now)
+        for k, v in zip(outs, values, strict=False):
+            d[k] = v
+            stamps[k] = now
+            if o > _NEVER:
+                origins[k] = o
+            else:
+                origins.pop(k, None)
+
+    return store_stated_many
+
+
+def _one_input_storer(
+    mem: Memory, outs: tuple[str, ...], unpack: Callable[[Any], Any], k0: str
+) -> Callable[[Any, Sequence[Any], float], None]:
+    """A part reading one channel: every output gets that channel's origin (none if it has none)."""
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+    oget = origins.get
+    if len(outs) == 1:
+        (k1,) = outs
+
+        def store_one_from_one(value: Any, args: Sequence[Any], now: float) -> None:
+            d[k1] = value
+            stamps[k1] = now
+            t = oget(k0)
+            if t is not None:
+                origins[k1] = t
+            else:
+                origins.pop(k1, None)
+
+        return store_one_from_one
+
+    def store_many_from_one(values: Any, args: Sequence[Any], now: float) -> None:
+        values = unpack(values)
+        t = oget(k0)
+        for k, v in zip(outs, values, strict=False):
+            d[k] = v
+            stamps[k] = now
+            if t is not None:
+                origins[k] = t
+            else:
+                origins.pop(k, None)
+
+    return store_many_from_one
+
+
+def _output_origin(
+    mem: Memory, ins: tuple[str | None, ...], inherited: Callable[[], float]
+) -> Callable[[Any, Sequence[Any]], float | None]:
+    """``origin(value, args)``: the origin of one output of a part reading several channels (the rule above), or
+    ``None`` for "inherited" (the store asks ``inherited()`` once for all such outputs).
+
+    An output that is one of the input objects: if it is immutable, the origin of the input it is. The same
+    object may sit in several inputs (a small constant both a driver and a skipped pilot published): a live input
+    wins over a dormant one, then the oldest. If it is mutable, the part may have written the other inputs' data
+    into it (``np.add(frame, imu, out=frame); return frame``) and the identity says nothing about its content: the
+    oldest of every input holding it and of the inherited origin. An input holding it without an origin (nothing
+    sensed behind it) gives ``_NEVER``.
+    """
+    oget, dormant = mem.origins.get, mem.dormant
+    # inputs whose value may be passed through as an output: (argument index, channel)
+    passthrough = tuple((i, k) for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
+    immutable_types = _IMMUTABLE_TYPES
+
+    def origin(value: Any, args: Sequence[Any]) -> float | None:
+        if value is None:
+            return None
+        o = None
+        live = False
+        for i, k in passthrough:
+            if args[i] is value:
+                t = oget(k)
+                if t is None:
+                    t = _NEVER
+                k_live = k not in dormant
+                if o is None or (k_live and not live) or (k_live == live and t < o):
+                    o, live = t, k_live
+        if o is None or type(value) in immutable_types or _immutable(value):  # (the common types inlined)
+            return o
+        # a mutable object: every input holding it, and all the others it could have been combined with
+        t = inherited()
+        for i, k in passthrough:
+            if args[i] is value:
+                o = oget(k, _NEVER)
+                if o < t:
+                    t = o
+        return t
+
+    return origin
+
+
+def _put_origin(origins: dict[str, float], k: str, o: float) -> None:
+    """Write channel ``k``'s origin; ``_NEVER`` (nothing sensed behind the value) leaves it without one."""
+    if o > _NEVER:
+        origins[k] = o
+    else:
+        origins.pop(k, None)
 
 
 def _unpacker(name: str, outs: tuple[str, ...]) -> Callable[[Any], Any]:
@@ -398,24 +503,103 @@ def _unpacker(name: str, outs: tuple[str, ...]) -> Callable[[Any], Any]:
     return unpack
 
 
-def _input_origin(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[float], float]:
-    """``origin(now)``: the oldest origin among the inputs that count (the rule above), ``now`` if none."""
-    oget, dormant = mem.origins.get, mem.dormant
-    sources = tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
+def _input_channels(ins: tuple[str | None, ...]) -> tuple[str, ...]:
+    """The channels a part reads (an ``@age`` input reads its channel's origin), each once, in order."""
+    return tuple(dict.fromkeys(k.removesuffix(AGE_SUFFIX) for k in ins if k is not None))
 
-    def origin(now: float) -> float:
-        o = _INF
-        for k in sources:
+
+def _input_origin(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[], float]:
+    """``origin()``: the oldest origin among the inputs that count (the rule above).
+
+    What counts is decided by the inputs read for their value: an ``@age`` input reads a time, not data, so a
+    fresh channel read only for its age does not make a switched-off pilot's command that the part also reads
+    count as fresh (its origin still joins the minimum). When none counts (each input was written by a producer
+    skipped this tick, or never), the oldest origin among all the inputs: a value computed from a switched-off
+    pilot's last command is as old as that command, never younger. ``_NEVER`` when no input has an origin at all
+    (nothing sensed is behind the value).
+    """
+    oget, dormant = mem.origins.get, mem.dormant
+    sources = _input_channels(ins)
+    if len(sources) == 1:
+        (k0,) = sources
+        return lambda: oget(k0, _NEVER)
+    valued = {k for k in ins if k is not None and not k.endswith(AGE_SUFFIX)} or set(sources)
+    if len(valued) == len(sources):
+        return _oldest_counted(oget, dormant, sources)
+    plan = tuple((k, k in valued) for k in sources)
+
+    def origin() -> float:
+        live = idle = _INF
+        counted = False
+        for k, by_value in plan:
             t = oget(k)
-            if t is not None and t < o and k not in dormant:
-                o = t
-        return now if o == _INF else o
+            if t is None:
+                continue
+            if k in dormant:
+                if t < idle:
+                    idle = t
+            else:
+                counted = counted or by_value
+                if t < live:
+                    live = t
+        if counted:
+            return live
+        t = live if live < idle else idle
+        return t if t < _INF else _NEVER
 
     return origin
 
 
+def _oldest_counted(oget: Callable[..., Any], dormant: set[str], sources: tuple[str, ...]) -> Callable[[], float]:
+    """``_input_origin`` for a part reading every input for its value (no ``@age`` only channel): any live input
+    counts."""
+
+    def origin() -> float:
+        live = idle = _INF
+        for k in sources:
+            t = oget(k)
+            if t is None:
+                continue
+            if k in dormant:
+                if t < idle:
+                    idle = t
+            elif t < live:
+                live = t
+        if live < _INF:
+            return live
+        return idle if idle < _INF else _NEVER
+
+    return origin
+
+
+def _immutable(value: Any) -> bool:
+    """Can ``value`` not have been written into in place? Decided once per type; a tuple's (or frozenset's)
+    items are looked at each time (an array inside a tuple can be written into)."""
+    tp = type(value)
+    if tp in _IMMUTABLE_TYPES:
+        return True
+    if tp in _CONTAINERS:
+        return all(map(_immutable, value))
+    kind = _TYPE_KIND.get(tp)
+    if kind is None:
+        kind = _TYPE_KIND[tp] = _immutability_of(tp)
+        if kind:
+            _IMMUTABLE_TYPES.add(tp)
+    return kind
+
+
+def _immutability_of(tp: type) -> bool:
+    """``True`` for types whose instances cannot change (enums, numpy scalars), ``False`` for everything else
+    (lists, dicts, arrays, any other object: it might be written into)."""
+    if issubclass(tp, enum.Enum):
+        return True
+    np = sys.modules.get("numpy")  # not imported yet: no value can be a numpy scalar
+    return np is not None and issubclass(tp, np.generic) and not issubclass(tp, np.void)
+
+
 def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[Any, float, float], None] | None:
-    """``store(result, origin, now)``: every output gets ``origin`` (a pipelined part's inputs, as read)."""
+    """``store(result, origin, now)``: every output gets ``origin`` (a pipelined part's inputs, as read; ``_NEVER``:
+    none)."""
     if not outs:
         return None
     d, stamps, origins = mem.d, mem.stamps, mem.origins
@@ -426,7 +610,7 @@ def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[An
         def store_one(value: Any, origin: float, now: float) -> None:
             d[k1] = value
             stamps[k1] = now
-            origins[k1] = origin
+            _put_origin(origins, k1, origin)
 
         return store_one
 
@@ -437,7 +621,7 @@ def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[An
         for k, v in zip(outs, values, strict=False):
             d[k] = v
             stamps[k] = now
-            origins[k] = origin
+            _put_origin(origins, k, origin)
 
     return store_many
 

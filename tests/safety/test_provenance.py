@@ -95,7 +95,7 @@ async def test_outputs_inherit_the_oldest_input_and_sources_are_sensed_when_they
 async def test_an_output_that_is_an_input_keeps_that_inputs_origin():
     class Old:
         def run(self):
-            return [1]  # a fresh list object each tick
+            return tuple([1])  # a fresh (immutable) object each tick; a list is the in-place case (test_age_rule)
 
         def output_origin(self):
             return 0.0
@@ -105,11 +105,11 @@ async def test_an_output_that_is_an_input_keeps_that_inputs_origin():
             self.pass_through = True
 
         def run(self, fresh, old):
-            return (fresh if self.pass_through else [fresh[0] + old[0]]), old
+            return (fresh if self.pass_through else (fresh[0] + old[0],)), old
 
     ages = Record()
     v = Vehicle()
-    v.add(Seq([[7]]), outputs=["fresh"])
+    v.add(Seq([(7,)]), outputs=["fresh"])
     v.add(Old(), outputs=["old"])
     v.add(Pick(), inputs=["fresh", "old"], outputs=["a", "b"])
     v.add(ages, inputs=["a@age", "b@age"])

@@ -277,3 +277,24 @@ async def test_remote_commands_reach_react_parts_when_they_arrive_not_at_the_nex
     between_ticks = [t - t0 for t, _a, _th in act.rows if 0.2 < t - t0 < 0.49]
     assert len(between_ticks) >= 3
     assert act.rows[-1][1:] == pytest.approx((-0.5, 0.5))
+
+
+@pytest.mark.asyncio
+async def test_a_value_with_no_sensing_behind_it_is_never_sent_as_fresh(link_pair, caplog):
+    """An infinite (or unknown) age means nothing sensed is behind the value: sending it with age 0 would make a
+    receiver's failsafe trust it. It is not sent, and counted."""
+    car, pilot = link_pair()
+    sub = ZenohSubscriber(car, ["pilot/throttle"])
+    pub = ZenohPublisher(pilot, ["pilot/throttle"])
+    assert await until(lambda: (pub.run(0.0, 0.0), sub.received > 0)[1])  # the route is up
+    await asyncio.sleep(0.1)
+    before = sub.received
+    pub.run(0.9, float("inf"))
+    pub.run(0.8, float("nan"))
+    assert pub.unaged == 2
+    pub.run(0.1, 0.05)
+    assert await until(lambda: sub.received == before + 1)
+    assert sub.run() == 0.1
+    assert any("has no sensing behind it" in r.getMessage() for r in caplog.records)
+    pub.shutdown()
+    sub.shutdown()

@@ -72,7 +72,9 @@ class ZenohPublisher:
 
     Add it with ``inputs=publisher.inputs``: the channels, then ``"<channel>@age"`` for each, so every sample
     carries the age of the sensing behind it (added with the channels alone, values count as sensed when sent).
-    ``sent``, ``skipped`` (unchanged) and ``errors`` count samples.
+    A value whose age is unknown (``inf``: no sensing behind it, e.g. computed from channels never written) is
+    not sent: sent with any finite age it would look fresh to the receiver. ``sent``, ``skipped`` (unchanged),
+    ``unaged`` (no sensing behind them) and ``errors`` count samples.
     """
 
     def __init__(
@@ -113,6 +115,7 @@ class ZenohPublisher:
         self._log = LogThrottle(5.0)
         self.sent = 0
         self.skipped = 0
+        self.unaged = 0
         self.errors = 0
         self.bytes_sent = 0
 
@@ -133,8 +136,13 @@ class ZenohPublisher:
                 self.skipped += 1
                 continue
             age = ages[i]
-            age = float(age) if age is not None and math.isfinite(age) and age > 0 else 0.0
             ch = self.channels[i]
+            if age is None or not math.isfinite(age):
+                self.unaged += 1
+                if self._log.allow(("unaged", ch), now):
+                    logger.warning("ZenohPublisher: %r has no sensing behind it (age %r): not sent", ch, age)
+                continue
+            age = float(age) if age > 0 else 0.0
             try:
                 enc = encode(value, ch, jpeg_quality=self.jpeg.get(ch))
             except CodecError as exc:

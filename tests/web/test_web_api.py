@@ -3,36 +3,16 @@ origin checks, Donkeycar's messages, one driver at a time, the deadman through t
 calibration and the MJPEG stream. Timing assertions only bound what a loaded machine can guarantee."""
 
 import asyncio
-import contextlib
-import datetime
-import ipaddress
 import json
-import ssl
 
 import aiohttp
 import cv2
 import numpy as np
 import pytest
-from web_rig import ZERO_PULSE, WebCar, await_until
+from web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
 from asyncdonkey import PartError
 from asyncdonkey.parts.web.video import CONTENT_TYPE
-
-
-@contextlib.asynccontextmanager
-async def driving(car: WebCar, rate_hz: float = 50):
-    task = asyncio.create_task(car.vehicle.run(rate_hz=rate_hz))
-    try:
-        await await_until(car.ctr.listening.is_set, 10, "the server to listen")
-        yield car
-    finally:
-        car.vehicle.stop()
-        await asyncio.wait_for(task, 15)
-        car.buses.close_all()
-
-
-def auth(car: WebCar) -> dict[str, str]:
-    return {"Authorization": f"Token {car.ctr.token}"}
 
 
 async def next_json(ws: aiohttp.ClientWebSocketResponse, key: str, timeout: float = 5.0) -> dict:
@@ -72,42 +52,10 @@ async def test_without_the_token_everything_is_401_and_the_printed_url_sets_a_co
             await http.get(base + "/status", headers=auth(car))
 
 
-def _self_signed(tmp_path) -> tuple[ssl.SSLContext, ssl.SSLContext]:
-    """A certificate for 127.0.0.1 as the docs tell a user to make one: the server's context, and a client's
-    that trusts exactly that certificate (a phone that accepted it once)."""
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "donkey")])
-    now = datetime.datetime.now(datetime.UTC)
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(name)
-        .issuer_name(name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(minutes=1))
-        .not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False)
-        .sign(key, hashes.SHA256())
-    )
-    crt, pem = tmp_path / "car.crt", tmp_path / "car.key"
-    crt.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    pem.write_bytes(
-        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
-    )
-    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    server.load_cert_chain(crt, pem)
-    return server, ssl.create_default_context(cafile=crt)
-
-
 @pytest.mark.asyncio
 async def test_served_over_https_the_page_and_its_websocket_drive_the_car(tmp_path):
     """What a phone needs for the screen wake lock and motion sensors: the same controller over TLS."""
-    server_ctx, client_ctx = _self_signed(tmp_path)
+    server_ctx, client_ctx = self_signed(tmp_path)
     async with driving(WebCar(tmp_path, ssl_context=server_ctx)) as car:
         port = car.ctr.port
         assert car.ctr.url == f"https://127.0.0.1:{port}/drive?token={car.ctr.token}"  # what the car prints

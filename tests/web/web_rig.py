@@ -4,6 +4,10 @@ simulated I2C bus (the chip's model shows what the pins output), and a tub write
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import datetime
+import ipaddress
+import ssl
 import threading
 import time
 from collections.abc import Callable
@@ -133,3 +137,53 @@ class CarThread:
         self.car.buses.close_all()
         if self.error is not None:
             raise self.error
+
+
+@contextlib.asynccontextmanager
+async def driving(car: WebCar, rate_hz: float = 50):
+    """The car driving on the test's own event loop (real time) while the test talks to it."""
+    task = asyncio.create_task(car.vehicle.run(rate_hz=rate_hz))
+    try:
+        await await_until(car.ctr.listening.is_set, 10, "the server to listen")
+        yield car
+    finally:
+        car.vehicle.stop()
+        await asyncio.wait_for(task, 15)
+        car.buses.close_all()
+
+
+def auth(car: WebCar) -> dict[str, str]:
+    """A script's way to present the car's token."""
+    return {"Authorization": f"Token {car.ctr.token}"}
+
+
+def self_signed(tmp_path) -> tuple[ssl.SSLContext, ssl.SSLContext]:
+    """A certificate for 127.0.0.1 as the docs tell a user to make one: the server's context, and a client's
+    that trusts exactly that certificate (a phone that accepted it once)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "donkey")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=1))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False)
+        .sign(key, hashes.SHA256())
+    )
+    crt, pem = tmp_path / "car.crt", tmp_path / "car.key"
+    crt.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    pem.write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
+    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    server.load_cert_chain(crt, pem)
+    return server, ssl.create_default_context(cafile=crt)

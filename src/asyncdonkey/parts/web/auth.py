@@ -7,7 +7,8 @@ Here every request needs the access token made when the server starts:
   (``HttpOnly``, ``SameSite=Strict``) and redirects to the same page without it, so the token does not stay in
   the address bar or the history;
 * scripts send it as ``?token=...`` on any request or as an ``Authorization: Token ...`` (or ``Bearer``) header;
-* anything else gets ``401``.
+* anything else gets ``401``, and its connection is closed: a client without the token cannot keep one open
+  (see :mod:`.guard` for connections that never complete a request).
 
 A browser sends the cookie with every request to the car, including requests another site's page makes it
 send; ``SameSite=Strict`` keeps the cookie off those, and requests that change something (WebSockets, ``POST``)
@@ -72,12 +73,15 @@ class Access:
     Args:
         token: the access token, or ``None`` for no check (loopback only; the caller enforces that).
         port: the server's port, part of the cookie's name.
+        on_admit: called with every request that passes the check, before its handler (the connection guard
+            then knows the connection is the car's user's, never to be shed).
     """
 
-    def __init__(self, token: str | None, port: int) -> None:
+    def __init__(self, token: str | None, port: int, on_admit: Callable[[web.Request], None] | None = None) -> None:
         self.token = token
         self.cookie = f"asyncdonkey-token-{port}"
         self.refused = 0
+        self._on_admit = on_admit
 
     def matches(self, candidate: str | None) -> bool:
         if self.token is None:
@@ -97,16 +101,20 @@ class Access:
 
     @web.middleware
     async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
-        if self.token is None:
-            return await handler(request)
-        if not self.matches(self.presented(request)):
+        if self.token is not None and not self.matches(self.presented(request)):
             self.refused += 1
-            return web.Response(
+            resp = web.Response(
                 status=401,
                 text="asyncdonkey: this car needs its access token. Open the URL it printed when it started "
                 "(.../drive?token=...), or send the token as ?token=... or an 'Authorization: Token ...' header.\n",
                 headers={"WWW-Authenticate": 'Token realm="asyncdonkey"'},
             )
+            resp.force_close()  # no keep-alive: the descriptor is the car's, not the stranger's
+            return resp
+        if self._on_admit is not None:
+            self._on_admit(request)
+        if self.token is None:
+            return await handler(request)
         if TOKEN_PARAM in request.query and request.method == "GET" and not _is_websocket(request):
             # a browser opening the printed URL: keep the token in a cookie, drop it from the address bar
             query = {k: v for k, v in request.query.items() if k != TOKEN_PARAM}

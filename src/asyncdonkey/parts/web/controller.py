@@ -11,6 +11,9 @@ rebuilt on the drive loop:
 * **One driver at a time**, others watch (:mod:`.desk`); anyone can stop.
 * **Video at one encode per new frame**, shared by all viewers (:mod:`.video`).
 * **A token per start** (:mod:`.auth`), printed as a URL and a QR code.
+* **Floods cannot lock the driver out** (:mod:`.guard`): a connection must present the token within
+  ``header_timeout_s``; at most ``max_connections``; ``reserve_fds`` descriptors stay free for the car's files;
+  the connections shed to make room are those without the token, never the driver's.
 
 Part contract (Donkeycar's)::
 
@@ -48,6 +51,14 @@ from ..control import DRIVE_MODES, USER, normalise_mode
 from .auth import TOKEN_PARAM, Access, WebConfigError, is_loopback, new_token, origin_allowed
 from .calibrate import CalibrationError, apply_calibration, current_calibration
 from .desk import Command, CommandError, Desk, parse_command
+from .guard import (
+    DEFAULT_BACKLOG,
+    DEFAULT_HEADER_TIMEOUT_S,
+    DEFAULT_MAX_CONNECTIONS,
+    DEFAULT_RESERVE_FDS,
+    ConnectionGuard,
+    check_limits,
+)
 from .health import vehicle_health
 from .video import FrameHub
 
@@ -72,6 +83,8 @@ _CSP = (
     "default-src 'self'; img-src 'self' data:; connect-src 'self' ws: wss:; style-src 'self'; script-src 'self'; "
     "frame-ancestors 'none'"
 )
+#: an idle keep-alive connection (its requests had the token, so the guard never sheds it) ends after this
+_KEEPALIVE_S = 60.0
 
 
 def _load_static() -> dict[str, tuple[bytes, str]]:
@@ -104,6 +117,14 @@ class WebController:
         qr: print a QR code of the URL (default: when ``announce`` is a terminal).
         ssl_context: serve HTTPS (phones grant the screen wake lock and motion sensors only to secure pages).
         health_every_s: how often the health strip is pushed to the pages.
+        header_timeout_s: a connection that has not sent a request with the token this long after it opened
+            (slow or missing headers, an unfinished TLS handshake) is closed.
+        max_connections: connections open at once; when full, those without the token are closed first (oldest
+            first), the driver's never.
+        reserve_fds: file descriptors kept free for the car (recordings, logs, devices) below the process's
+            ``RLIMIT_NOFILE`` soft limit: no connection is kept that would leave fewer.
+        backlog: the listening socket's queue, where new connections wait (holding none of the car's
+            descriptors) while there is no room for them.
     """
 
     def __init__(
@@ -125,6 +146,10 @@ class WebController:
         qr: bool | None = None,
         ssl_context: ssl.SSLContext | None = None,
         health_every_s: float = 0.5,
+        header_timeout_s: float = DEFAULT_HEADER_TIMEOUT_S,
+        max_connections: int = DEFAULT_MAX_CONNECTIONS,
+        reserve_fds: int = DEFAULT_RESERVE_FDS,
+        backlog: int = DEFAULT_BACKLOG,
     ) -> None:
         if not (isinstance(port, int) and 0 <= port <= 65535):
             raise WebConfigError(f"WebController: port must be 0..65535, got {port!r}")
@@ -139,6 +164,7 @@ class WebController:
             raise WebConfigError(f"WebController: max_throttle must be in [0, 1], got {max_throttle!r}")
         if not (health_every_s > 0 and math.isfinite(health_every_s)):
             raise WebConfigError(f"WebController: health_every_s must be a positive number, got {health_every_s!r}")
+        check_limits(header_timeout_s, max_connections, reserve_fds, backlog)
         self.host = host
         self.port = port
         self._token_setting = token
@@ -153,6 +179,9 @@ class WebController:
         self.qr = qr
         self.ssl_context = ssl_context
         self.health_every_s = float(health_every_s)
+        self.backlog = backlog
+        #: connection admission: header deadline, cap, descriptor reserve (counters in ``/status``)
+        self.guard = ConnectionGuard(header_timeout_s, max_connections, reserve_fds)
         self.outputs: list[str] = list(WEB_OUTPUTS)
         self.inputs: list[str] = list(WEB_INPUTS)
 
@@ -235,16 +264,10 @@ class WebController:
         self._stop = asyncio.Event()
         self._served = loop.create_future()
         self.token = new_token() if isinstance(self._token_setting, _NewToken) else self._token_setting
-        runner = web.AppRunner(self._make_app(), access_log=None, shutdown_timeout=1.0)
+        runner = web.AppRunner(self._make_app(), access_log=None, shutdown_timeout=1.0, keepalive_timeout=_KEEPALIVE_S)
         try:
             await runner.setup()
-            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
-            try:
-                await site.start()
-            except OSError as exc:
-                raise WebConfigError(f"WebController: cannot listen on {self.host}:{self.port}: {exc}") from exc
-            bound = runner.addresses[0]
-            self.port = int(bound[1])
+            self.port = await self._listen(runner)
             assert self._access is not None
             self._access.cookie = f"asyncdonkey-token-{self.port}"
             self._origin = clock.now()
@@ -276,7 +299,21 @@ class WebController:
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(asyncio.shield(self._served), timeout)
 
+    async def _listen(self, runner: web.AppRunner) -> int:
+        """Listen, the connection guard accepting (TLS too: the guard hands the socket over for the handshake,
+        so a connection that never completes one is seen, counted and timed out like any other). Returns the
+        port."""
+        assert runner.server is not None
+        try:
+            bound = await self.guard.start(
+                runner.server, self.host, self.port, backlog=self.backlog, ssl_context=self.ssl_context
+            )
+        except OSError as exc:
+            raise WebConfigError(f"WebController: cannot listen on {self.host}:{self.port}: {exc}") from exc
+        return int(bound[0][1])
+
     async def _close(self, runner: web.AppRunner) -> None:
+        await self.guard.stop()  # no new connections; aiohttp's cleanup below closes the open ones
         await self.hub.close()
         for ws in list(self._clients):
             with contextlib.suppress(Exception):
@@ -339,7 +376,7 @@ class WebController:
 
     # ================================================================================== server
     def _make_app(self) -> web.Application:
-        self._access = Access(self.token, self.port)
+        self._access = Access(self.token, self.port, on_admit=self.guard.admit)
         app = web.Application(middlewares=[self._access.middleware, _security_headers])
         app.router.add_get("/", self._root)
         app.router.add_get("/drive", self._page("drive.html"))
@@ -385,6 +422,7 @@ class WebController:
             "viewers": self.hub.viewers,
             "encodes": self.hub.encodes,
             "health": self.last_health,
+            "connections": self.guard.counters(),
         }
 
     async def _get_status(self, request: web.Request) -> web.StreamResponse:

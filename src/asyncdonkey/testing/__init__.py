@@ -40,6 +40,7 @@ _LAZY = {
         "MPU6050Model",
         "PCA9685Model",
         "RegisterDeviceModel",
+        "RemoteI2CSimulator",
         "SimulatedI2CBus",
         "SimulatedSMBus",
     ),

@@ -241,8 +241,10 @@ class WebController:
             self.recording, self._recording_latch = self._recording_latch, None
             changes["recording"] = self.recording
         if num_records is not None and num_records != self.num_records:
-            self.num_records = int(num_records)
-            if self.recording and self.num_records % 10 == 0:
+            before, self.num_records = self.num_records, int(num_records)
+            # every tenth record, as Donkeycar pushes it; a count that jumps past a multiple of ten (the writer
+            # counts records once they are on disk, two at a time now and then) still crosses it
+            if self.recording and self.num_records // 10 != before // 10:
                 changes["num_records"] = self.num_records
         # Donkeycar's button latch: a press is reported on one tick, then as released on the next
         buttons = self._buttons

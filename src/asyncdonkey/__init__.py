@@ -5,6 +5,7 @@ The public core is small: :class:`Vehicle` (the drive loop), :class:`Memory` (na
 """
 
 from .clock import Clock, DeadlineWaiter, Schedule, get_clock
+from .contracts import REFUSED, Contract, Contracts, ContractViolation, Gate
 from .latest import Latest, Sample
 from .loop import DriveReport, OutputCountError, PartError, PartSpecError, Vehicle
 from .memory import Memory
@@ -14,9 +15,14 @@ from .virtual_loop import VirtualClockLoop
 __version__ = "0.1.0"
 
 __all__ = [
+    "REFUSED",
     "Clock",
+    "Contract",
+    "ContractViolation",
+    "Contracts",
     "DeadlineWaiter",
     "DriveReport",
+    "Gate",
     "Latest",
     "Memory",
     "OutputCountError",

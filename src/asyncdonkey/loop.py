@@ -18,11 +18,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from .clock import get_clock
+from .contracts import Contract, Contracts
 from .drive import Drive, latency_recorder
 from .errors import AsyncdonkeyError, OutputCountError, PartError, PartSpecError, PartTimeoutError
 from .memory import Memory
@@ -128,8 +129,17 @@ class Vehicle:
     block_report_s = 0.25
 
     def __init__(
-        self, mem: Memory | None = None, *, profiler_window: int | None = None, safety_process: bool | None = None
+        self,
+        mem: Memory | None = None,
+        *,
+        profiler_window: int | None = None,
+        safety_process: bool | None = None,
+        contracts: Contracts | Mapping[str, Contract] | None = None,
     ) -> None:
+        #: what each channel's values may be (``asyncdonkey.contracts``): the Donkeycar defaults, then whatever is
+        #: declared here, with :meth:`declare`, or by a part's ``contracts`` mapping when it is added. Boundary
+        #: parts (network and web receivers) check what they admit against these.
+        self.contracts = contracts if isinstance(contracts, Contracts) else Contracts(contracts)
         #: the safety process (``asyncdonkey.safety``): ``None`` starts it on a real loop whenever an actuator
         #: has an output it can reach (a PCA9685 channel) and drives on without it, logging why, if it cannot
         #: start; ``True`` requires it (the drive does not start without it); ``False`` never starts it
@@ -233,6 +243,7 @@ class Vehicle:
         label = name or type(part).__name__
         if self._drive is not None:
             raise PartSpecError(f"Vehicle.add({label}): parts cannot be added while the vehicle is running")
+        self._take_contracts(part, label)
         e = build_entry(
             self.mem,
             part,
@@ -254,6 +265,23 @@ class Vehicle:
         e.series = self.profiler.series_for(e.name)
         self.parts.append(e)
         logger.debug("added part %s inputs=%s outputs=%s", e.name, e.inputs, e.outputs)
+
+    def declare(self, channel: str, contract: Contract) -> None:
+        """Declare what ``channel``'s values may be (see ``docs/contracts.md``); replaces a default."""
+        self.contracts.declare(channel, contract)
+
+    def _take_contracts(self, part: Any, label: str) -> None:
+        """A part may declare its channels' contracts (a ``contracts`` mapping) and may check what it receives
+        against the car's (a ``use_contracts(contracts)`` method, called here with :attr:`contracts`)."""
+        declared = getattr(part, "contracts", None)
+        if isinstance(declared, Mapping):
+            for channel, contract in declared.items():
+                if not isinstance(contract, Contract):
+                    raise PartSpecError(f"Vehicle.add({label}): contracts[{channel!r}] is not a Contract: {contract!r}")
+                self.contracts.declare(channel, contract)
+        use = getattr(part, "use_contracts", None)
+        if callable(use):
+            use(self.contracts)
 
     def _unique_name(self, label: str) -> str:
         names = {e.name for e in self.parts}

@@ -68,9 +68,10 @@ class ContractViolation(AsyncdonkeyError, ValueError):
 
     def __init__(self, channel: str, reason: str, detail: str, part: str | None = None) -> None:
         who = f"part {part!r} wrote " if part else ""
-        super().__init__(f"{who}channel {channel!r}: {detail}")
+        super().__init__(f"{who}channel {channel!r}: {detail}" if channel else detail)
         self.channel = channel
         self.reason = reason
+        self.detail = detail
         self.part = part
 
 
@@ -362,7 +363,7 @@ class Contracts:
         try:
             return c.check(value)
         except ContractViolation as exc:
-            raise ContractViolation(channel, exc.reason, f"{exc} (expected {c.describe()})", part) from None
+            raise ContractViolation(channel, exc.reason, f"{exc.detail} (expected {c.describe()})", part) from None
 
     def gate(self, where: str) -> Gate:
         """A :class:`Gate` for one boundary (``where`` names it in logs: ``"ZenohSubscriber"``, ``"web"``)."""
@@ -393,7 +394,7 @@ class Gate:
         try:
             return c.check(value)
         except ContractViolation as exc:
-            return self.refuse(channel, exc.reason, f"{exc} (expected {c.describe()})", now)
+            return self.refuse(channel, exc.reason, f"{exc.detail} (expected {c.describe()})", now)
 
     def refuse(self, channel: str, reason: str, detail: str, now: float = 0.0) -> Any:
         """Count and log (rate-limited) one refused value; returns :data:`REFUSED`. Receivers that find a value

@@ -2,13 +2,18 @@
 subscribes, and receives the messages the MCAP file would hold.
 
 The protocol's subprotocol name is ``foxglove.websocket.v1``; foxglove-sdk 0.30 and later name the same protocol
-``foxglove.sdk.v1`` and refuse the old name, so the client offers both, as Foxglove's app does."""
+``foxglove.sdk.v1`` and refuse the old name. Clients offering either name, or both as Foxglove's app does, are
+served (the relay in front of the SDK's server renames the offer); the relay's bounds are tested against a plain
+socket server standing in for the SDK's."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import struct
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -19,6 +24,8 @@ from asyncdonkey.parts.mcap.live import FoxgloveServer
 from asyncdonkey.parts.mcap.reader import decode_image, protobuf_class
 
 PROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+
+pytestmark = pytest.mark.network
 
 
 class Car:
@@ -121,25 +128,6 @@ async def test_nobody_watching_costs_no_encoding():
     assert set(live._sink.channels) >= {"/cam/image_array", "/n", "/asyncdonkey/tick"}  # advertised anyway
 
 
-def test_the_shipped_layout_is_the_built_one_and_shows_recorded_topics():
-    from asyncdonkey.parts.mcap.layout import build_layout, layout_path
-
-    text = layout_path().read_text().strip()
-    assert text == build_layout()
-    layout = json.loads(text)
-    found = json.dumps(layout)
-    for topic in (
-        '"/cam/image_array"',
-        "/cam/image_array/steering",
-        "/user/angle.value",
-        "/pilot/angle.value",
-        "/asyncdonkey/tick.lateness_ms",
-        "/asyncdonkey/parts",
-        "/asyncdonkey/latency",
-    ):
-        assert topic in found
-
-
 def test_a_busy_port_is_an_error_naming_the_address():
     from asyncdonkey.errors import AsyncdonkeyError
     from asyncdonkey.parts.mcap.live import FoxgloveServerError
@@ -152,3 +140,218 @@ def test_a_busy_port_is_an_error_naming_the_address():
         assert isinstance(err.value, AsyncdonkeyError) and isinstance(err.value, OSError)
     finally:
         first.shutdown()
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize(
+    "offer, chosen",
+    [
+        (["foxglove.websocket.v1"], "foxglove.websocket.v1"),  # Lichtblick, older Foxglove Studio
+        (["foxglove.sdk.v1"], "foxglove.sdk.v1"),  # clients written for the SDK
+        (PROTOCOLS, "foxglove.sdk.v1"),  # Foxglove's app
+    ],
+)
+async def test_clients_offering_either_subprotocol_name_are_served(offer, chosen):
+    v = Vehicle()
+    v.add(Car(), outputs=["cam/image_array", "user/angle", "n"])
+    live = FoxgloveServer(v, port=0)
+    v.add(live, name="foxglove")
+    drive = asyncio.create_task(v.run(rate_hz=50))
+    try:
+        async with websockets.connect(live.url, subprotocols=offer, open_timeout=5) as ws:
+            assert ws.subprotocol == chosen
+            info = json.loads(await ws.recv())
+            assert info["op"] == "serverInfo" and info["name"] == "asyncdonkey"
+            chans = await advertised(ws, {"/n", "/cam/image_array", "/asyncdonkey/tick"})
+            sub = {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": chans["/n"]["id"]}]}
+            await ws.send(json.dumps(sub))
+            _, data = await message_data(ws, 7)
+            assert json.loads(data)["value"] >= 1
+    finally:
+        v.stop()
+        await drive
+
+
+@pytest.mark.asyncio
+async def test_a_client_offering_neither_name_is_refused_by_the_server():
+    live = FoxgloveServer(Vehicle(), port=0)
+    try:
+        with pytest.raises(websockets.InvalidStatus) as err:
+            async with websockets.connect(live.url, subprotocols=["chat"], open_timeout=5):
+                pass
+        assert err.value.response.status_code == 400
+    finally:
+        live.shutdown()
+
+
+# --------------------------------------------------------------------------------------------- the relay's bounds
+HANDSHAKE = (
+    b"GET / HTTP/1.1\r\nHost: car\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+    b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+    b"Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"
+)
+
+
+class FakeServer:
+    """Stands in for the SDK's server: answers the handshake with ``foxglove.sdk.v1`` (or 400 when not offered),
+    then sends ``blast`` bytes of a counting pattern as fast as the socket takes them, and records what it got."""
+
+    def __init__(self, blast: int = 0):
+
+        self.blast = blast
+        self.sent = 0
+        self.heads: list[bytes] = []
+        self.blocked = threading.Event()
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        conn, _ = self.listener.accept()
+        with conn:
+            head = b""
+            while b"\r\n\r\n" not in head:
+                head += conn.recv(4096)
+            self.heads.append(head)
+            if b"foxglove.sdk.v1" not in head:
+                conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+                return
+            conn.sendall(
+                b"HTTP/1.1 101 Switching Protocols\r\nconnection: Upgrade\r\nupgrade: websocket\r\n"
+                b"sec-websocket-accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=\r\nsec-websocket-protocol: foxglove.sdk.v1\r\n\r\n"
+            )
+            conn.settimeout(0.5)
+            try:
+                while self.sent < self.blast:
+                    off = self.sent % 256
+                    try:
+                        self.sent += conn.send(BLOCK[off : off + min(65536, self.blast - self.sent)])
+                    except TimeoutError:
+                        self.blocked.set()  # the relay stopped reading: backpressure reached the server
+                        conn.settimeout(10.0)
+                conn.recv(1)  # until the relay closes
+            except OSError:
+                pass
+
+    def close(self):
+        self.listener.close()
+
+
+BLOCK = bytes(i % 256 for i in range(65536 + 256))
+"""a counting pattern: the byte at stream offset k is ``k % 256``"""
+
+
+def read_head(sock) -> tuple[bytes, bytes]:
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        data += chunk
+    head, _, rest = data.partition(b"\r\n\r\n")
+    return head, rest
+
+
+def test_the_relay_renames_the_offer_and_the_answer_and_nothing_else():
+    from asyncdonkey.parts.mcap.relay import SubprotocolRelay
+
+    server = FakeServer(blast=1000)
+    relay = SubprotocolRelay("127.0.0.1", 0, ("127.0.0.1", server.port))
+    try:
+        with socket.create_connection(("127.0.0.1", relay.port), timeout=5) as c:
+            c.sendall(HANDSHAKE)
+            head, rest = read_head(c)
+            assert head.startswith(b"HTTP/1.1 101") and b"sec-websocket-protocol: foxglove.websocket.v1" in head
+            assert b"s3pPLMBiTxaQ9kYGzzhZRbK+xOo=" in head  # the accept key untouched
+            while len(rest) < 1000:
+                rest += c.recv(4096)
+            assert rest == BLOCK[:1000]
+        assert b"Sec-WebSocket-Protocol: foxglove.websocket.v1, foxglove.sdk.v1\r\n" in server.heads[0]
+        assert relay.stats.renamed == 1 and relay.stats.to_clients >= 1000
+    finally:
+        relay.stop()
+        server.close()
+
+
+def test_a_slow_client_gets_backpressure_not_an_unbounded_buffer():
+    from asyncdonkey.parts.mcap.relay import SubprotocolRelay
+
+    total = 64 * 1024 * 1024
+    server = FakeServer(blast=total)
+    relay = SubprotocolRelay("127.0.0.1", 0, ("127.0.0.1", server.port), buffer_limit=64 * 1024)
+    try:
+        with socket.socket() as c:
+            c.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024)
+            c.settimeout(10)
+            c.connect(("127.0.0.1", relay.port))
+            c.sendall(HANDSHAKE)
+            head, rest = read_head(c)
+            assert head.startswith(b"HTTP/1.1 101")
+            assert server.blocked.wait(10)  # the client reads nothing more: the server's sends stall
+            assert relay.buffered() <= 64 * 1024
+            assert server.sent < total // 2  # socket buffers and the relay's hold a few MB, not the whole blast
+            # the client catches up: every byte arrives, in order
+            assert rest == BLOCK[: len(rest)]
+            got = len(rest)
+            while got < total:
+                chunk = c.recv(65536)
+                assert chunk, f"closed after {got} bytes"
+                off = got % 256
+                assert chunk == BLOCK[off : off + len(chunk)]
+                got += len(chunk)
+        assert relay.stats.to_clients >= total
+    finally:
+        relay.stop()
+        server.close()
+
+
+def test_a_silent_client_is_dropped_after_the_handshake_timeout():
+
+    from asyncdonkey.parts.mcap.relay import SubprotocolRelay
+
+    server = FakeServer()
+    relay = SubprotocolRelay("127.0.0.1", 0, ("127.0.0.1", server.port), handshake_timeout_s=0.3)
+    try:
+        with socket.create_connection(("127.0.0.1", relay.port), timeout=5) as c:
+            c.sendall(b"GET / HTTP/1.1\r\n")  # and nothing more
+            t0 = time.monotonic()
+            assert c.recv(100) == b""  # closed by the relay
+            assert 0.2 < time.monotonic() - t0 < 3
+        assert relay.stats.timed_out == 1 and relay.connections == 0
+    finally:
+        relay.stop()
+        server.close()
+
+
+def test_connections_beyond_the_cap_are_answered_503():
+    from asyncdonkey.parts.mcap.relay import SubprotocolRelay
+
+    server = FakeServer()
+    relay = SubprotocolRelay("127.0.0.1", 0, ("127.0.0.1", server.port), max_connections=2)
+    try:
+        held = [socket.create_connection(("127.0.0.1", relay.port), timeout=5) for _ in range(2)]
+        for c in held:
+            c.sendall(b"GET")  # a handshake under way holds its slot
+        with socket.create_connection(("127.0.0.1", relay.port), timeout=5) as extra:
+            assert extra.recv(100).startswith(b"HTTP/1.1 503")
+        assert relay.stats.refused == 1 and relay.connections == 2
+        for c in held:
+            c.close()
+    finally:
+        relay.stop()
+        server.close()
+
+
+def test_an_oversized_handshake_is_refused():
+    from asyncdonkey.parts.mcap.relay import SubprotocolRelay
+
+    server = FakeServer()
+    relay = SubprotocolRelay("127.0.0.1", 0, ("127.0.0.1", server.port), max_head=1024)
+    try:
+        with socket.create_connection(("127.0.0.1", relay.port), timeout=5) as c:
+            c.sendall(b"GET / HTTP/1.1\r\nX-Junk: " + b"a" * 4096)
+            assert c.recv(100).startswith(b"HTTP/1.1 431")
+    finally:
+        relay.stop()
+        server.close()

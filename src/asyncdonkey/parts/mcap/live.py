@@ -1,9 +1,14 @@
 """``FoxgloveServer``: the car's channels and timing live in Foxglove, over its WebSocket protocol.
 
-The part runs foxglove-sdk's WebSocket server (``foxglove.websocket.v1``; the server itself is a native thread
-of the SDK) and publishes the same topics, schemas and bytes as :class:`~.recorder.McapRecorder` writes
-(:mod:`.encode`). Open Foxglove, *Open connection* → ``ws://<car>:8765``, and load the layout shipped with the
-package (:func:`layout_path`, ``asyncdonkey layout`` prints it).
+The part runs foxglove-sdk's WebSocket server (the server itself is a native thread of the SDK) and publishes
+the same topics, schemas and bytes as :class:`~.recorder.McapRecorder` writes (:mod:`.encode`). Open Foxglove,
+*Open connection* → ``ws://<car>:8765``, and load the layout shipped with the package
+(:func:`~.layout.layout_path`; ``python -m asyncdonkey.parts.mcap.layout`` prints it).
+
+The SDK's server names the protocol ``foxglove.sdk.v1`` and refuses clients that offer only its older name,
+``foxglove.websocket.v1`` (older Foxglove Studio versions, Lichtblick). So the SDK's server listens on a loopback
+port and a :class:`~.relay.SubprotocolRelay` on the public address (its own thread) accepts both names, renaming
+the offer in the handshake and splicing the bytes after it (``max_clients`` connections at once).
 
 The tick pays what the recorder's tick pays (two small dict copies and a queue append, see
 :class:`~.recorder.TickRecorder`); encoding and sending happen on the writer thread, and a value is encoded
@@ -24,6 +29,7 @@ from typing import Any
 from ...errors import AsyncdonkeyError
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 from .recorder import TickRecorder
+from .relay import SubprotocolRelay
 
 __all__ = ["FoxgloveServer", "FoxgloveServerError"]
 
@@ -94,6 +100,7 @@ class FoxgloveServer(TickRecorder):
         host, port: where the server listens (``port=0``: any free port, see :attr:`port`).
         name: the server name clients show.
         queue_size: ticks that may wait for the sending thread before new ones are dropped.
+        max_clients: clients connected at once; one more is answered HTTP 503.
     """
 
     def __init__(
@@ -111,23 +118,23 @@ class FoxgloveServer(TickRecorder):
         jpeg_quality: int = 75,
         queue_size: int = 4,
         drain_timeout_s: float = 2.0,
+        max_clients: int = 8,
     ) -> None:
         import foxglove
 
         where = f"FoxgloveServer({host}:{port})"
         self._check_writer_args(where, queue_size, 1, 1.0, drain_timeout_s)
+        if not (isinstance(max_clients, int) and max_clients > 0):
+            raise ValueError(f"{where}: max_clients must be a positive integer, got {max_clients!r}")
         if not hasattr(vehicle, "mem"):
             raise TypeError(f"{where}: vehicle must be a Vehicle (with .mem and .profiler), got {vehicle!r}")
         self.vehicle = vehicle
         self._timing = timing
         self.encoder = TickEncoder(channels, every_tick=every_tick, kinds=kinds, gps=gps, jpeg_quality=jpeg_quality)
         self._context = foxglove.Context()
-        try:
-            self.server = foxglove.start_server(name=name, host=host, port=port, context=self._context)
-        except Exception as exc:  # the SDK raises its own error types for a busy port or a bad address
-            raise FoxgloveServerError(f"{where}: cannot start the WebSocket server: {exc}") from exc
+        self.server, self.relay = _start(foxglove, self._context, name, host, port, max_clients, where)
         self.host = host
-        self.port: int = self.server.port
+        self.port: int = self.relay.port
         """the port the server listens on (the one chosen when ``port=0``)"""
         self._sink = sink = _LiveSink(self.encoder, self._context)
         self._start_writer(
@@ -150,9 +157,26 @@ class FoxgloveServer(TickRecorder):
         was_closed = self._closed
         super().shutdown(timeout)
         if not was_closed:
+            self.relay.stop()
             self.server.stop()
 
     close = shutdown
 
     def __repr__(self) -> str:
         return f"<FoxgloveServer {self.url}>"
+
+
+def _start(
+    foxglove: Any, context: Any, name: str, host: str, port: int, max_clients: int, where: str
+) -> tuple[Any, SubprotocolRelay]:
+    """The SDK's server on a loopback port, and the relay on the public address in front of it."""
+    try:
+        server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=context)
+    except Exception as exc:  # the SDK raises its own error types
+        raise FoxgloveServerError(f"{where}: cannot start the WebSocket server: {exc}") from exc
+    try:
+        relay = SubprotocolRelay(host, port, ("127.0.0.1", server.port), max_connections=max_clients)
+    except OSError as exc:
+        server.stop()
+        raise FoxgloveServerError(f"{where}: cannot listen: {exc}") from exc
+    return server, relay

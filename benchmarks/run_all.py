@@ -1,17 +1,18 @@
-"""Run every benchmark and print one results table; ``--write-readme`` also puts it into README.md.
+"""Run every benchmark and print one results table; ``--write-docs`` also puts it into docs/benchmarks.md.
 
     python benchmarks/run_all.py                  # full runs (about ten minutes with Donkeycar installed)
     python benchmarks/run_all.py --quick          # short runs, for a look
-    python benchmarks/run_all.py --write-readme   # `make bench`: full runs, README table and results JSON
-    python benchmarks/run_all.py --only safety --write-readme   # rerun one; the others keep their saved figures
+    python benchmarks/run_all.py --write-docs     # `make bench`: full runs, docs/benchmarks.md table and results JSON
+    python benchmarks/run_all.py --only safety --write-docs   # rerun one; the others keep their saved figures
 
 Each benchmark runs in its own process with ``--json`` (so one cannot warm up or disturb another), one after
 the other (they are timing benchmarks: running them side by side on two cores would measure each other). The
 table shows asyncdonkey beside the installed Donkeycar (5.3 on Python 3.11, 5.4 on 3.12-3.13), and the ratio
 in the direction "how many times better": Donkeycar's figure over ours for times and errors, ours over
 Donkeycar's for rates.
-The README's table is replaced between its ``benchmarks:begin`` / ``benchmarks:end`` markers, with the machine
-it ran on and its load average at the start (figures from a busy machine are worse, and say so).
+The table in docs/benchmarks.md is replaced between its ``benchmarks:begin`` / ``benchmarks:end`` markers, with
+the machine it ran on and its load average at the start (figures from a busy machine are worse, and say so).
+``--write-readme`` is the former name of ``--write-docs`` and does the same.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from machine_info import describe, donkeycar_version
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-README = ROOT / "README.md"
+DOC = ROOT / "docs" / "benchmarks.md"
 RESULTS = HERE / "results" / "latest.json"
 BEGIN, END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
 
@@ -371,20 +372,27 @@ def markdown(rows: list[Row], where: str, when: str, quick: bool, donkeycar: str
     return "\n".join(lines)
 
 
-def write_readme(table: str) -> None:
-    text = README.read_text()
+def write_doc(table: str, path: Path = DOC) -> None:
+    """Replace the table between the markers in ``path`` (docs/benchmarks.md); without markers, append it."""
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
     block = f"{BEGIN}\n{table}\n{END}"
     if BEGIN in text and END in text:
         text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), lambda _m: block, text, flags=re.S)
     else:
-        text = text.rstrip("\n") + "\n\n## Benchmarks\n\n" + block + "\n"
-    README.write_text(text)
+        text = text.rstrip("\n") + "\n\n## The latest run\n\n" + block + "\n"
+    path.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="short runs of each benchmark")
-    ap.add_argument("--write-readme", action="store_true", help="replace the README's results table")
+    ap.add_argument(
+        "--write-docs",
+        "--write-readme",  # its former name, when the table lived in the README
+        dest="write_docs",
+        action="store_true",
+        help=f"replace the results table in {DOC.relative_to(ROOT)} and save the figures",
+    )
     ap.add_argument("--only", choices=sorted(BENCHMARKS), action="append", help="run only these benchmarks")
     ap.add_argument(
         "--from-json", type=Path, metavar="FILE", help=f"no runs: rebuild the table from saved figures ({RESULTS.name})"
@@ -412,12 +420,13 @@ def main(argv: list[str] | None = None) -> int:
     # saved figures from before the version was recorded were measured against Donkeycar 5.3.0
     table = markdown(rows, where, when, quick, results.get("donkeycar", "5.3.0"))
     print(table)
-    if args.write_readme:
-        write_readme(table)
+    if args.write_docs:
+        write_doc(table)
         if not args.from_json:
             RESULTS.parent.mkdir(exist_ok=True)
             RESULTS.write_text(json.dumps(results, indent=2) + "\n")
-        print(f"wrote the table into {README.name} and the figures into {RESULTS.relative_to(ROOT)}", file=sys.stderr)
+        where_to = f"{DOC.relative_to(ROOT)} and the figures into {RESULTS.relative_to(ROOT)}"
+        print(f"wrote the table into {where_to}", file=sys.stderr)
     return 0
 
 

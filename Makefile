@@ -39,7 +39,7 @@ format: $(VENV)/.test
 	$(VENV)/bin/ruff format .
 
 bench: $(VENV)/.test
-	$(PY) benchmarks/run_all.py --write-readme
+	$(PY) benchmarks/run_all.py --write-docs
 
 clean:
 	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache build *.egg-info src/*.egg-info

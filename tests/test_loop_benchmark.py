@@ -1,5 +1,5 @@
 """``benchmarks/loop.py`` runs end to end in a few seconds (tiny rounds) and its JSON has the shape
-``benchmarks/run_all.py`` turns into the README table: every configuration of every round, medians inside
+``benchmarks/run_all.py`` turns into the docs/benchmarks.md table: every configuration of every round, medians inside
 their spreads, per-round ratios to Donkeycar. The figures themselves are the benchmark's business, not the
 test's: a tiny run on a shared machine proves nothing about them."""
 

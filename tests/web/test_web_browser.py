@@ -295,6 +295,26 @@ def test_calibration_page_sets_the_steering_end_point(tab: Page, car: WebCar):
     assert tab.errors == []
 
 
+@pytest.mark.browser
+def test_the_calibration_page_is_refused_while_another_page_drives(browser: Any, tab: Page, car: WebCar):
+    tab.page.keyboard.down("ArrowUp")
+    wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the first tab driving")
+    tab.page.keyboard.up("ArrowUp")  # at rest, but still the driver: its page keeps sending
+    wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, what="the car stopped")
+    other = Page(browser, car)
+    try:
+        page = other.page
+        page.goto(f"{car.base}/calibrate")
+        page.locator("#cfg-THROTTLE_STOPPED_PWM").fill("480")  # what a watcher once made "stopped" and "safe"
+        page.click("#apply")
+        page.wait_for_selector("#msg.bad", timeout=5_000)
+        assert "another client is driving" in other.text("#msg")
+        assert (car.throttle.zero_pulse, car.throttle.safe_pulse) == (ZERO_PULSE, ZERO_PULSE)
+        assert tab.text("#control") == "you drive" and other.errors == []
+    finally:
+        other.close()
+
+
 def test_without_the_token_the_browser_is_refused(browser: Any, car: WebCar):
     context = browser.new_context()
     try:

@@ -2,35 +2,89 @@
 button latch and the video hub (on the virtual clock)."""
 
 import asyncio
+import json
 
 import numpy as np
 import pytest
 
-from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle
+from asyncdonkey import Contract, Contracts, Vehicle
+from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle, pulse_to_ticks
+from asyncdonkey.parts.control import DRIVE_MODES
 from asyncdonkey.parts.web import WebConfigError, WebController
-from asyncdonkey.parts.web.calibrate import CalibrationError, apply_calibration, current_calibration
+from asyncdonkey.parts.web.calibrate import (
+    CalibrationError,
+    admit_config,
+    apply_calibration,
+    current_calibration,
+    why_not_stopped,
+)
 from asyncdonkey.parts.web.desk import Command, CommandError, Desk, parse_command
+from asyncdonkey.parts.web.intake import MAX_MESSAGE_BYTES, Intake
 from asyncdonkey.parts.web.video import FrameHub, encode_jpeg
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 
-def test_commands_are_donkeycar_messages_clamped_and_checked():
-    c = parse_command({"angle": -3, "throttle": "0.25", "drive_mode": "local_pilot", "recording": True})
+def test_commands_are_donkeycar_messages_checked_against_the_contracts_never_clamped_or_parsed():
+    c = parse_command({"angle": -1, "throttle": 0.25, "drive_mode": "local_pilot", "recording": True})
     assert (c.angle, c.throttle, c.mode, c.recording) == (-1.0, 0.25, "local", True)
     assert c.drives and not c.stop
     assert not parse_command({"stop": True}).drives
     assert parse_command({"angle": None, "throttle": None}).drives is False
     for bad, word in (
         ({"throttle": "fast"}, "throttle"),
-        ({"angle": float("nan")}, "angle"),
+        ({"throttle": "0.25"}, "expected a number"),  # a string is not a number: no parsing at the boundary
+        ({"angle": -3}, "outside"),  # refused, not clamped: 1e300 made 1.0 would be full lock
+        ({"angle": float("nan")}, "NaN"),
         ({"angle": True}, "angle"),
         ({"drive_mode": "autopilot"}, "autopilot"),
         ({"recording": "yes"}, "recording"),
         ({"buttons": ["w1"]}, "buttons"),
+        ({"stop": "yes"}, "stop"),
         ([1, 2], "JSON object"),
     ):
         with pytest.raises(CommandError, match=word):
             parse_command(bad)
+
+
+def test_every_refused_value_is_counted_per_channel_and_reason_and_the_message_refused_whole():
+    gate = Contracts().gate("web")
+    intake = Intake(gate, ("user",), lambda: 0.0)
+    with pytest.raises(CommandError, match=r"angle.*throttle"):
+        intake.command({"angle": float("inf"), "throttle": 10**400, "recording": True})
+    with pytest.raises(CommandError, match="not available here"):
+        intake.command({"drive_mode": "local"})  # in the contract, not on this car
+    for raw in ("", "null", "{", "[" * 5000, "[]"):  # empty, empty, not JSON, nested too deep, not an object
+        with pytest.raises(CommandError):
+            intake.decode(raw)
+    with pytest.raises(CommandError, match="bytes"):
+        intake.decode(json.dumps({"pad": "x" * MAX_MESSAGE_BYTES}))
+    assert gate.counts() == {
+        "user/angle": {"inf": 1},
+        "user/throttle": {"range": 1},
+        "user/mode": {"choice": 1},
+        "web/command": {"empty": 2, "encoding": 2, "type": 1, "size": 1},
+    }
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_the_controller_checks_what_clients_send_against_the_car_s_own_contracts():
+    v = Vehicle()
+    v.declare("user/throttle", Contract.number(-0.5, 0.5, safe=0.0))  # a car that must never go faster
+    ctr = WebController(host="127.0.0.1", announce=None)
+    assert ctr.gate.contracts is not v.contracts  # the defaults until it is added to a vehicle
+    v.add(ctr, inputs=list(ctr.inputs), outputs=ctr.outputs)
+    assert ctr.gate.contracts is v.contracts and ctr.gate.where == "web"
+    with pytest.raises(CommandError, match="outside"):
+        ctr.intake.command({"throttle": 0.8})
+    assert ctr.refused_values == {"user/throttle": {"range": 1}}
+    assert ctr.state()["refused_values"] == {"user/throttle": {"range": 1}}
+
+
+def test_a_car_that_declares_no_command_contracts_still_gets_them_at_the_web_boundary():
+    intake = Intake(Contracts(defaults=False).gate("web"), DRIVE_MODES, lambda: 0.0)
+    with pytest.raises(CommandError, match="NaN"):
+        intake.command({"throttle": float("nan")})
 
 
 def test_one_driver_at_a_time_with_idle_release_and_stop_for_everyone():
@@ -75,7 +129,8 @@ def test_calibration_sets_pulses_and_neutrals_or_nothing(pwm):
     got = apply_calibration(steering, throttle, {"STEERING_LEFT_PWM": 480, "THROTTLE_STOPPED_PWM": 380})
     assert got["STEERING_LEFT_PWM"] == 480 and steering.left_pulse == 480
     assert steering.neutral_pulse == 385  # centre of 480 and 290, where shutdown leaves the wheels
-    assert throttle.zero_pulse == 380 and throttle.neutral_pulse == 380  # the failsafe's stopped pulse
+    assert throttle.zero_pulse == 380 and throttle.neutral_pulse == 380
+    assert throttle.safe_pulse == 380  # between drives the failsafe's stopped pulse follows the calibration
     for bad, word in (
         ({"STEERING_LEFT_PWM": 250}, "both 250"),
         ({"THROTTLE_FORWARD_PWM": 380}, "must differ"),
@@ -89,6 +144,115 @@ def test_calibration_sets_pulses_and_neutrals_or_nothing(pwm):
         assert steering.right_pulse == 290  # checked first, then applied: a refused request changes nothing
     with pytest.raises(CalibrationError, match="steering part"):
         apply_calibration(None, throttle, {"STEERING_LEFT_PWM": 470})
+
+
+def test_the_stopped_pulse_must_lie_strictly_between_reverse_and_forward(pwm):
+    steering, throttle = pwm
+    for zero in (500, 600, 220, 100):  # at an end point or past it, "stopped" would drive
+        with pytest.raises(CalibrationError, match=r"must differ|strictly between"):
+            apply_calibration(steering, throttle, {"THROTTLE_STOPPED_PWM": zero})
+    with pytest.raises(CalibrationError, match="strictly between"):
+        apply_calibration(steering, throttle, {"THROTTLE_FORWARD_PWM": 300})  # forward moved below stopped
+    assert current_calibration(None, throttle)["THROTTLE_STOPPED_PWM"] == 370  # nothing set
+    reversed_esc = {"THROTTLE_FORWARD_PWM": 220, "THROTTLE_REVERSE_PWM": 500, "THROTTLE_STOPPED_PWM": 360}
+    assert apply_calibration(steering, throttle, reversed_esc)["THROTTLE_STOPPED_PWM"] == 360  # either way round
+    for bad in (float("nan"), float("inf"), 10**400, "370", True):  # the gate-less path raises its own error too
+        with pytest.raises(CalibrationError):
+            apply_calibration(steering, throttle, {"THROTTLE_STOPPED_PWM": bad})
+
+
+def test_a_calibration_is_read_back_and_a_part_that_keeps_another_value_is_an_error(pwm):
+    _, throttle = pwm
+
+    class Stubborn(PWMThrottle):
+        def calibrate(self, *args, check_only=False, **kwargs):
+            return super().calibrate(*args, check_only=True, **kwargs)  # checks, says yes, keeps what it had
+
+    stubborn = Stubborn(throttle._channel)
+    with pytest.raises(CalibrationError, match="read-back differs") as err:
+        apply_calibration(None, stubborn, {"THROTTLE_STOPPED_PWM": 380})
+    assert err.value.in_force["THROTTLE_STOPPED_PWM"] == 370  # what the page is shown: what is in force
+
+
+def test_the_car_is_stopped_only_with_a_zero_command_and_the_output_at_a_stopped_pulse(pwm):
+    _, throttle = pwm
+    throttle.pulse = throttle.written_pulse = 370
+    assert why_not_stopped(0.0, "user", throttle) is None
+    assert "command is +0.20" in why_not_stopped(0.2, "user", throttle)
+    throttle.pulse = throttle.written_pulse = 420  # a pilot drives while the web's own command is 0
+    assert "pulse 420" in why_not_stopped(0.0, "local", throttle)
+    throttle.pulse, throttle.written_pulse = 370, None  # nothing written yet (or the write failed)
+    assert why_not_stopped(0.0, "user", throttle) is not None
+    assert "pilot" in why_not_stopped(0.0, "local", None)  # no output to look at: the mode must be user
+    assert why_not_stopped(0.0, "user", None) is None
+
+
+def test_calibration_values_pass_the_web_gate_and_are_counted():
+    gate = Contracts().gate("web")
+    intake = Intake(gate, DRIVE_MODES, lambda: 0.0)
+    assert admit_config(intake, {"STEERING_LEFT_PWM": 470, "THROTTLE_STOPPED_PWM": 380.0}) == {
+        "STEERING_LEFT_PWM": 470,
+        "THROTTLE_STOPPED_PWM": 380,
+    }
+    config = {
+        "THROTTLE_STOPPED_PWM": float("nan"),
+        "THROTTLE_FORWARD_PWM": 10**400,
+        "THROTTLE_REVERSE_PWM": "220",
+        "STEERING_LEFT_PWM": 4096,
+        "STEERING_RIGHT_PWM": 290.5,
+        "MM1_STEERING_MID": 1500,
+    }
+    with pytest.raises(CalibrationError):
+        admit_config(intake, config)
+    with pytest.raises(CalibrationError):
+        admit_config(intake, [460])
+    assert gate.counts() == {
+        "calibration/THROTTLE_STOPPED_PWM": {"nan": 1},
+        "calibration/THROTTLE_FORWARD_PWM": {"range": 1},
+        "calibration/THROTTLE_REVERSE_PWM": {"type": 1},
+        "calibration/STEERING_LEFT_PWM": {"range": 1},
+        "calibration/STEERING_RIGHT_PWM": {"fraction": 1},
+        "web/calibration": {"unknown": 1, "type": 1},
+    }
+
+
+class _Drive:
+    """What an actuator is attached to at a drive's start (the parts of it these tests touch)."""
+
+    guard_last = None
+
+    def deadline_changed(self, t: float) -> None:
+        pass
+
+    def record_latency(self, now: float, origin: float) -> None:
+        pass
+
+
+def test_a_calibration_during_a_drive_never_moves_the_safe_pulse():
+    sim = I2CSimulator()
+    pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
+    buses = sim.registry(retry_delay_s=0)
+    steering, throttle = PWMSteering("PCA9685.1:40.1", buses=buses), PWMThrottle("PCA9685.1:40.0", buses=buses)
+    try:
+        steering.attach(_Drive()), throttle.attach(_Drive())  # the drive starts at 370 stopped, 375 centred
+        apply_calibration(steering, throttle, {"THROTTLE_STOPPED_PWM": 380, "STEERING_LEFT_PWM": 480})
+        assert (throttle.neutral_pulse, throttle.map_throttle(0.0)) == (380, 380)  # what a zero command is now
+        assert (throttle.safe_pulse, steering.safe_pulse) == (370, 375)  # what "safe" is: the drive's
+        throttle.safe_state_sync()  # the watchdog's write
+        steering.safe_state_sync()
+        assert (pca.pulse(0), pca.pulse(1)) == (370, 375)
+
+        class Channel:  # what the safety process is given at the drive's start (the model has no route of its own)
+            def safety_route(self, ticks: int) -> dict:
+                return {"ticks": ticks}
+
+        throttle._channel = Channel()
+        assert throttle.safety_route() == {"ticks": pulse_to_ticks(370)}
+        throttle.attach(None), steering.attach(None)  # the drive ends; the next one starts from the calibration
+        throttle.attach(_Drive())
+        assert throttle.safe_pulse == 380
+    finally:
+        buses.close_all()
 
 
 def test_token_none_is_refused_unless_loopback():

@@ -27,7 +27,8 @@ What is different, and why:
   "throttle@age"]``, the Vehicle supplies ``@age``): a command ``failsafe_age_s`` old (default 0.25 s) or
   older is replaced by the stopped pulse. The writer task checks too, on its own timer, so the car stops even
   when the tick itself stalls. Each entry into the failsafe is counted (``failsafe_events``) and logged
-  (rate-limited).
+  (rate-limited). Every safe-state write (failsafe, watchdog, safety process, shutdown) uses ``safe_pulse``,
+  the neutral pulse as the drive started: a live ``calibrate()`` moves the neutral pulse, not the safe one.
 * **One chip driver per (bus, address)**: opening the throttle pin does not re-initialise the chip the
   steering pin already set up (Donkeycar's does, zeroing the steering channel).
 
@@ -184,6 +185,11 @@ class _PWMPart:
         self._pending_origin: float | None = None
         self.name = f"{kind} ({where})"
         self.neutral_pulse = int(neutral_pulse)
+        #: the pulse every safe-state write uses (the failsafe, the watchdog, arming, shutdown; the safety
+        #: process's route is taken at the drive's start too): the neutral pulse as the drive started. A live
+        #: calibration changes :attr:`neutral_pulse` (what a zero command maps to) but never what is "safe"
+        #: during a drive: a value typed into a web page must not redefine the stop the failsafe falls back to.
+        self.safe_pulse = self.neutral_pulse
         self.retry_s = float(retry_s)
         self.pulse = self.neutral_pulse  # the newest target, in Donkeycar pulse units
         self.written_pulse: int | None = None  # what the chip was last told
@@ -216,10 +222,10 @@ class _PWMPart:
         raw = self._raw_write
         assert raw is not None
         with self._wlock:
-            if self._tripped and pulse != self.neutral_pulse:
+            if self._tripped and pulse != self.safe_pulse:
                 return
             raw(pulse)
-            if pulse == self.neutral_pulse and self.unsafe.open_since is not None and self._now is not None:
+            if pulse == self.safe_pulse and self.unsafe.open_since is not None and self._now is not None:
                 self.unsafe.closed(self._now())
 
     async def _write_pulse(self, pulse: int) -> None:
@@ -239,22 +245,28 @@ class _PWMPart:
             raise RuntimeError(f"{self.name}: the output has no synchronous write, so only the loop can stop it")
         with self._wlock:
             self._tripped = True
-            self.unsafe.stale(self.command_deadline(), self.written_pulse == self.neutral_pulse)
-            raw(self.neutral_pulse)
+            self.unsafe.stale(self.command_deadline(), self.written_pulse == self.safe_pulse)
+            raw(self.safe_pulse)
             if self._now is not None:
                 self.unsafe.closed(self._now())
-        self.written_pulse = self.neutral_pulse
-        self.pulse = self.neutral_pulse
+        self.written_pulse = self.safe_pulse
+        self.pulse = self.safe_pulse
 
     def safety_route(self) -> dict[str, Any] | None:
         """How the safety process puts this output in its safe state by itself (``None``: it cannot).
 
         Only a PCA9685 channel has one: a Donkeycar controller object or an async-only output lives in this
-        process alone. The pulse is the neutral one as it is now, at the drive's start."""
+        process alone. The pulse is the safe one as it is now, at the drive's start."""
         ch = self._channel
         if ch is None:
             return None
-        return ch.safety_route(pulse_to_ticks(self.neutral_pulse, self._scale, self._inverted))
+        return ch.safety_route(pulse_to_ticks(self.safe_pulse, self._scale, self._inverted))
+
+    def _calibrated(self) -> None:
+        """A calibration changed :attr:`neutral_pulse`: between drives it is the safe pulse from now on; during
+        one the safe pulse stays the drive's (see :attr:`safe_pulse`)."""
+        if self._runtime is None:
+            self.safe_pulse = self.neutral_pulse
 
     def output_overridden(self) -> None:
         """Someone else (the safety process) wrote the output: write our own target again (on the loop thread)."""
@@ -274,6 +286,7 @@ class _PWMPart:
                 if self._now is not None:
                     self.unsafe.closed(self._now())
         elif runtime is not None:
+            self.safe_pulse = self.neutral_pulse  # the drive's safe pulse, whatever is calibrated during it
             self.unsafe = UnsafeTime()
             self.unsafe.guard_last = getattr(runtime, "guard_last", None)
         self._runtime = runtime
@@ -354,19 +367,19 @@ class _PWMPart:
             self._writer_deadline = math.inf
 
     async def shutdown(self) -> None:
-        """Stop the writer and leave the output at the neutral pulse (steering centre, throttle stopped)."""
+        """Stop the writer and leave the output at the safe pulse (steering centre, throttle stopped)."""
         self._running = False
-        self.pulse = self.neutral_pulse
+        safe = self.pulse = self.safe_pulse
         w = self._wake
         if w is not None and not w.done():
             w.set_result(None)
         try:
-            await self._write_pulse(self.neutral_pulse)
-            self.written_pulse = self.neutral_pulse
+            await self._write_pulse(safe)
+            self.written_pulse = safe
             self.writes += 1
         except OSError as exc:
             self.write_errors += 1
-            logger.error("%s: could not set the neutral pulse %d at shutdown: %s", self.name, self.neutral_pulse, exc)
+            logger.error("%s: could not set the neutral pulse %d at shutdown: %s", self.name, safe, exc)
         finally:
             if self._closer is not None:
                 self._closer()
@@ -449,6 +462,7 @@ class PWMSteering(_PWMPart):
         if not check_only:
             self.left_pulse, self.right_pulse = left, right
             self.neutral_pulse = donkeycar_map_range(0, self.LEFT_ANGLE, self.RIGHT_ANGLE, left, right)
+            self._calibrated()
         return {"left_pulse": int(left), "right_pulse": int(right)}
 
     def run(self, angle: float | None, angle_age: float | None = None) -> None:
@@ -579,6 +593,7 @@ class PWMThrottle(_PWMPart):
         if not check_only:
             self.max_pulse, self.zero_pulse, self.min_pulse = vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"]
             self.neutral_pulse = int(self.zero_pulse)
+            self._calibrated()
         return {k: int(v) for k, v in vals.items()}
 
     def map_throttle(self, throttle: float | None) -> int:
@@ -622,14 +637,14 @@ class PWMThrottle(_PWMPart):
         unsafe = self.unsafe
         if stale:
             with self._wlock:
-                unsafe.stale(stale_at, self.written_pulse == self.neutral_pulse)
+                unsafe.stale(stale_at, self.written_pulse == self.safe_pulse)
         elif unsafe.open_since is not None and throttle_age is not None:
             with self._wlock:
                 unsafe.closed(now)  # a fresh command: the stale one's event ends, landed or not
         if self._tripped and not stale:
             self._tripped = False  # a fresh command after a watchdog event: drive again
         driving = not stale and self.armed
-        self._set_target(self.command_pulse if driving else self.neutral_pulse)
+        self._set_target(self.command_pulse if driving else self.safe_pulse)
         if stale_at < self._writer_deadline:
             w = self._wake
             if w is not None and not w.done():
@@ -660,26 +675,26 @@ class PWMThrottle(_PWMPart):
                     self.name,
                     age * 1e3,
                     (self.failsafe_age_s or 0) * 1e3,
-                    self.neutral_pulse,
+                    self.safe_pulse,
                     self.failsafe_events,
                     more,
                 )
 
     def _desired(self, now: float) -> tuple[int, float]:
         if not self.armed:
-            return self.neutral_pulse, math.inf
+            return self.safe_pulse, math.inf
         stale_at = self._stale_at
         if now >= stale_at:
             # the command went stale between ticks (or the tick stalled): stop without waiting for run()
             with self._wlock:
-                self.unsafe.stale(stale_at, self.written_pulse == self.neutral_pulse)
+                self.unsafe.stale(stale_at, self.written_pulse == self.safe_pulse)
             self._failsafe(True, now, now - stale_at + (self.failsafe_age_s or 0))
-            self.pulse = self.neutral_pulse  # so the next fresh command counts as a change and wakes us
-            return self.neutral_pulse, math.inf
+            self.pulse = self.safe_pulse  # so the next fresh command counts as a change and wakes us
+            return self.safe_pulse, math.inf
         return self.pulse, stale_at
 
     async def _before_driving(self, clock: Clock, waiter: DeadlineWaiter) -> None:
-        neutral = self.neutral_pulse
+        neutral = self.safe_pulse
         while self._running and not await self._write(neutral, clock):
             await waiter.wait_until(clock.now() + self.retry_s)
         if self.arm_s:

@@ -14,6 +14,10 @@ A browser sends the cookie with every request to the car, including requests ano
 send; ``SameSite=Strict`` keeps the cookie off those, and requests that change something (WebSockets, ``POST``)
 are refused when their ``Origin`` names another site. ``token=None`` turns all this off, which is allowed only
 when the server listens on loopback alone (a simulator on the laptop): nobody else can reach it then.
+
+The token says a client may use the car, not which client it is. ``POST /drive`` clients are told apart by a
+*session* (:class:`Sessions`): a cookie the server sets on their first ``POST``, so that a second script on the
+driver's machine, holding the same token but not the driver's cookie, cannot take over.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from aiohttp import web
 
 from ...errors import AsyncdonkeyError
 
-__all__ = ["TOKEN_PARAM", "Access", "WebConfigError", "is_loopback", "new_token", "origin_allowed"]
+__all__ = ["TOKEN_PARAM", "Access", "Sessions", "WebConfigError", "is_loopback", "new_token", "origin_allowed"]
 
 TOKEN_PARAM = "token"
 
@@ -127,3 +131,38 @@ class Access:
 
 def _is_websocket(request: web.Request) -> bool:
     return request.headers.get("Upgrade", "").lower() == "websocket"
+
+
+class Sessions:
+    """Session cookies for ``POST`` clients: a random id signed with a key made at each start.
+
+    Signed, not stored: the server keeps nothing per session (a client that drops cookies would make one per
+    request), and an id it did not issue (or issued before a restart) is no session at all.
+
+    Args:
+        port: the server's port, part of the cookie's name (two cars on one host).
+        secure: mark the cookie ``Secure`` (the server speaks HTTPS).
+    """
+
+    def __init__(self, port: int, *, secure: bool = False) -> None:
+        self.cookie = f"asyncdonkey-session-{port}"
+        self.secure = secure
+        self._key = secrets.token_bytes(32)
+
+    def _sign(self, raw: str) -> str:
+        return hmac.new(self._key, raw.encode(), "sha256").hexdigest()[:32]
+
+    def of(self, request: web.Request) -> str | None:
+        """The session id a request carries, if the server issued it; else ``None``."""
+        value = request.cookies.get(self.cookie)
+        if not value or len(value) > 80:
+            return None
+        raw, _, mac = value.partition(".")
+        return value if raw and hmac.compare_digest(mac.encode(), self._sign(raw).encode()) else None
+
+    def issue(self, response: web.StreamResponse) -> str:
+        """Give the client of ``response`` a new session (``HttpOnly``, ``SameSite=Strict``); returns its id."""
+        raw = secrets.token_urlsafe(16)
+        value = f"{raw}.{self._sign(raw)}"
+        response.set_cookie(self.cookie, value, httponly=True, samesite="Strict", path="/", secure=self.secure)
+        return value

@@ -3,19 +3,42 @@
 Donkeycar's ``/wsCalibrate`` takes ``{"config": {"STEERING_LEFT_PWM": 460, ...}}`` and sets the pulses on the
 drive train while the car runs, so the owner can find the end points with the wheels in the air. The same keys
 set :class:`~asyncdonkey.parts.actuators.PWMSteering` (``left_pulse``, ``right_pulse``) and
-:class:`~asyncdonkey.parts.actuators.PWMThrottle` (``max_pulse``, ``zero_pulse``, ``min_pulse``). Values are
-checked first (whole numbers in the PCA9685's 0..4095, end points apart from centre and stop), so a slip of
-the finger cannot leave the steering with no range; the neutral pulses (steering centre, throttle stopped)
-follow, since the actuators fall back to them at shutdown and in the failsafe.
+:class:`~asyncdonkey.parts.actuators.PWMThrottle` (``max_pulse``, ``zero_pulse``, ``min_pulse``).
+
+A calibration changes what the car does with every command, so it is guarded as a command and more:
+
+* each value goes through the web boundary's gate (:func:`admit_config`: a finite whole number in the
+  PCA9685's 0..4095; ``NaN``, ``inf``, a 400-digit integer, ``"480"`` are refused and counted);
+* the calibration that would result is checked before anything is set (left ≠ right, and the stopped pulse
+  strictly between the reverse and forward pulses: a "stopped" pulse past forward is full throttle);
+* only while the car is stopped (:func:`why_not_stopped`) and only for the client holding control (the
+  controller checks that);
+* read back: the calibration in force afterwards must be what was asked (:func:`apply_calibration`).
+
+The neutral pulses follow (steering centre, throttle stopped: what a zero command maps to), but what the car
+falls back to in the failsafe, the watchdog and the safety process stays the pulse the drive started with
+(the actuators' ``safe_pulse``): a value typed into a page never redefines "safe" during a drive.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+from ...contracts import Contract
 from .auth import WebConfigError
+from .intake import Intake
 
-__all__ = ["STEERING_KEYS", "THROTTLE_KEYS", "CalibrationError", "apply_calibration", "current_calibration"]
+__all__ = [
+    "CALIBRATION",
+    "STEERING_KEYS",
+    "THROTTLE_KEYS",
+    "CalibrationError",
+    "admit_config",
+    "apply_calibration",
+    "current_calibration",
+    "why_not_stopped",
+]
 
 STEERING_KEYS = {"STEERING_LEFT_PWM": "left_pulse", "STEERING_RIGHT_PWM": "right_pulse"}
 THROTTLE_KEYS = {
@@ -23,10 +46,28 @@ THROTTLE_KEYS = {
     "THROTTLE_STOPPED_PWM": "zero_pulse",
     "THROTTLE_REVERSE_PWM": "min_pulse",
 }
+#: the channel a calibration message's refusals are counted under (not an object, unknown setting, ...)
+CALIBRATION = "web/calibration"
 
 
 class CalibrationError(WebConfigError):
-    """A calibration request that cannot be applied (the message names the setting)."""
+    """A calibration request that cannot be applied (the message names the setting).
+
+    ``channel`` and ``reason`` are what the web gate counts it under; ``in_force`` is the calibration in force
+    when the error is about what was set (a read-back that differs)."""
+
+    def __init__(
+        self,
+        message: str,
+        in_force: dict[str, int] | None = None,
+        *,
+        channel: str = CALIBRATION,
+        reason: str = "calibration",
+    ) -> None:
+        super().__init__(message)
+        self.in_force = in_force
+        self.channel = channel
+        self.reason = reason
 
 
 def current_calibration(steering: Any, throttle: Any) -> dict[str, int]:
@@ -38,19 +79,76 @@ def current_calibration(steering: Any, throttle: Any) -> dict[str, int]:
     return out
 
 
-def _pulse(key: str, value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
-        raise CalibrationError(f"calibration: {key} must be a whole number of pulse units, got {value!r}")
-    v = int(value)
-    if not 0 <= v <= 4095:
-        raise CalibrationError(f"calibration: {key} must be in 0..4095 (PCA9685 pulse units), got {v}")
-    return v
+def admit_config(intake: Intake, config: object) -> dict[str, int]:
+    """A calibration message's ``config``, each value through the web gate (channel ``calibration/<KEY>``).
+
+    Raises :class:`CalibrationError` naming every refused value (each counted at the gate)."""
+    if not isinstance(config, dict):
+        what = f"'config' must be an object of setting: value, got {config!r:.40}"
+        raise CalibrationError(str(intake.refuse(CALIBRATION, "type", what)))
+    known = {**STEERING_KEYS, **THROTTLE_KEYS}
+    out: dict[str, int] = {}
+    errors: list[str] = []
+    for key, value in config.items():
+        try:
+            if key not in known:
+                what = f"unknown setting {key!r:.40} (expected one of {', '.join(known)})"
+                raise intake.refuse(CALIBRATION, "unknown", what)
+            out[key] = _pulse(intake, key, value)
+        except WebConfigError as exc:
+            errors.append(str(exc))
+    if errors:
+        raise CalibrationError("; ".join(errors))
+    return out
+
+
+_PULSE = Contract.number(0, 4095)
+
+
+def _pulse(intake: Intake, key: str, value: object) -> int:
+    """One pulse: a finite number in 0..4095 (the gate's contract), and whole (PCA9685 ticks)."""
+    pulse = intake.admit(f"calibration/{key}", value, key, _PULSE)
+    if pulse != int(pulse):
+        raise intake.refuse(f"calibration/{key}", "fraction", f"{key!r}: {pulse} is not a whole number of pulse units")
+    return int(pulse)
+
+
+def why_not_stopped(command: float, mode: str, throttle: Any) -> str | None:
+    """Why the car is not stopped (``None``: it is): the controller's throttle command is not 0, or the
+    throttle's output is not at a stopped pulse (the one in force or the drive's safe one), or, without a
+    throttle part to look at, a pilot may be driving."""
+    if command != 0.0:
+        return f"the throttle command is {command:+.2f}"
+    if throttle is None:
+        return None if mode == "user" else f"a pilot may be driving (mode {mode!r})"
+    stopped = {int(throttle.neutral_pulse), int(getattr(throttle, "safe_pulse", throttle.neutral_pulse))}
+    out = getattr(throttle, "written_pulse", None)
+    if out not in stopped or getattr(throttle, "pulse", out) not in stopped:
+        return f"the throttle's output is at pulse {out}, not at the stopped pulse {throttle.neutral_pulse}"
+    return None
+
+
+def _check_stopped_between(throttle: Any, new: dict[str, int]) -> None:
+    """The stopped pulse must lie strictly between reverse and forward (either way round: an ESC may be
+    wired reversed): a "stopped" pulse at or past an end point is full throttle."""
+    vals = {attr: new.get(attr, getattr(throttle, attr)) for attr in THROTTLE_KEYS.values()}
+    lo, hi = sorted((vals["min_pulse"], vals["max_pulse"]))
+    if not lo < vals["zero_pulse"] < hi:
+        raise CalibrationError(
+            f"calibration: THROTTLE_STOPPED_PWM ({vals['zero_pulse']}) must be strictly between "
+            f"THROTTLE_REVERSE_PWM ({vals['min_pulse']}) and THROTTLE_FORWARD_PWM ({vals['max_pulse']})",
+            channel="calibration/THROTTLE_STOPPED_PWM",
+            reason="range",
+        )
 
 
 def apply_calibration(steering: Any, throttle: Any, config: object) -> dict[str, int]:
-    """Check every value of ``config`` first, then set them all; returns the calibration now in force."""
+    """Check every value of ``config`` first, then set them all, then read back; returns the calibration in force.
+
+    Raises :class:`CalibrationError` when a value or the resulting calibration is refused (nothing set), or when
+    the calibration read back differs from what was asked (``in_force`` says what is)."""
     if not isinstance(config, dict):
-        raise CalibrationError(f"calibration: 'config' must be an object of setting: value, got {config!r}")
+        raise CalibrationError(f"calibration: 'config' must be an object of setting: value, got {config!r:.40}")
     known = {**STEERING_KEYS, **THROTTLE_KEYS}
     steer_new: dict[str, int] = {}
     throttle_new: dict[str, int] = {}
@@ -61,7 +159,7 @@ def apply_calibration(steering: Any, throttle: Any, config: object) -> dict[str,
         if part is None:
             which = "steering" if key in STEERING_KEYS else "throttle"
             raise CalibrationError(f"calibration: {key} needs the {which} part (WebController({which}=...))")
-        target[known[key]] = _pulse(key, value)
+        target[known[key]] = _whole_pulse(key, value)
     try:  # both parts checked before either changes
         if steer_new:
             steering.calibrate(**steer_new, check_only=True)
@@ -69,8 +167,35 @@ def apply_calibration(steering: Any, throttle: Any, config: object) -> dict[str,
             throttle.calibrate(**throttle_new, check_only=True)
     except ValueError as exc:
         raise CalibrationError(f"calibration: {exc}") from None
+    if throttle_new:
+        _check_stopped_between(throttle, throttle_new)
     if steer_new:
         steering.calibrate(**steer_new)
     if throttle_new:
         throttle.calibrate(**throttle_new)
-    return current_calibration(steering, throttle)
+    return _read_back(steering, throttle, {k: int(v) for k, v in config.items()})
+
+
+def _whole_pulse(key: str, value: object) -> int:
+    """The pulse check for callers without a gate: a finite whole number in 0..4095 (never raises anything
+    but :class:`CalibrationError`: ``int(inf)`` would be an ``OverflowError``)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise CalibrationError(f"calibration: {key} must be a whole number of pulse units, got {value!r:.40}")
+    if isinstance(value, float) and not (math.isfinite(value) and value == int(value)):
+        raise CalibrationError(f"calibration: {key} must be a whole number of pulse units, got {value!r}")
+    if not 0 <= value <= 4095:
+        raise CalibrationError(f"calibration: {key} must be in 0..4095 (PCA9685 pulse units), got {value!r:.40}")
+    return int(value)
+
+
+def _read_back(steering: Any, throttle: Any, asked: dict[str, int]) -> dict[str, int]:
+    """The calibration in force, checked against what was asked, the stopped pulse and the centre included
+    (what a zero command maps to): a part that took a value and kept another is an error, not a success."""
+    in_force = current_calibration(steering, throttle)
+    wrong = {k: (v, in_force.get(k)) for k, v in asked.items() if in_force.get(k) != v}
+    if "THROTTLE_STOPPED_PWM" in asked and int(throttle.neutral_pulse) != asked["THROTTLE_STOPPED_PWM"]:
+        wrong["the throttle's stopped pulse"] = (asked["THROTTLE_STOPPED_PWM"], int(throttle.neutral_pulse))
+    if wrong:
+        said = ", ".join(f"{k} asked {a}, in force {b}" for k, (a, b) in wrong.items())
+        raise CalibrationError(f"calibration: the read-back differs: {said}", in_force, reason="readback")
+    return in_force

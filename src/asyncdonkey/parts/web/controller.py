@@ -25,13 +25,16 @@ HTTP API (Donkeycar's, port 8887): ``/`` → ``/drive``; ``GET /drive`` the page
 ``driveMode``, ``recording`` and ``num_records``; ``/video`` the MJPEG stream; ``/calibrate`` and
 ``/wsCalibrate`` the PWM calibration. Ours on top: ``{"stop": true}``, ``{"release": true}``, pushes of
 ``control`` (``you``/``other``/``free``), ``health`` and ``error``; ``GET /status`` (JSON).
+
+Every value a client sends goes through the car's contracts at the boundary (:mod:`.intake`: the
+controller's :class:`~asyncdonkey.contracts.Gate`, ``"web"``): a bad one is answered (400, or an ``error`` push
+on a socket kept open), counted in ``/status`` under ``refused_values``, and applied as nothing at all.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 import socket
@@ -45,12 +48,20 @@ from typing import Any, Final, TextIO
 from aiohttp import WSMsgType, web
 
 from ...clock import Clock, get_clock
+from ...contracts import Contracts, Gate
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from ..control import DRIVE_MODES, USER, normalise_mode
-from .auth import TOKEN_PARAM, Access, WebConfigError, is_loopback, new_token, origin_allowed
-from .calibrate import CalibrationError, apply_calibration, current_calibration
-from .desk import Command, CommandError, Desk, parse_command
+from .auth import TOKEN_PARAM, Access, Sessions, WebConfigError, is_loopback, new_token, origin_allowed
+from .calibrate import (
+    CALIBRATION,
+    CalibrationError,
+    admit_config,
+    apply_calibration,
+    current_calibration,
+    why_not_stopped,
+)
+from .desk import Command, CommandError, Desk
 from .guard import (
     DEFAULT_BACKLOG,
     DEFAULT_HEADER_TIMEOUT_S,
@@ -60,6 +71,7 @@ from .guard import (
     check_limits,
 )
 from .health import vehicle_health
+from .intake import COMMAND, MAX_MESSAGE_BYTES, Intake
 from .video import FrameHub
 
 __all__ = ["NEW_TOKEN", "WEB_INPUTS", "WEB_OUTPUTS", "WebController"]
@@ -85,6 +97,9 @@ _CSP = (
 )
 #: an idle keep-alive connection (its requests had the token, so the guard never sheds it) ends after this
 _KEEPALIVE_S = 60.0
+#: a WebSocket frame larger than this closes the socket (1009): aiohttp must buffer a frame to read it. Below it,
+#: a message over ``MAX_MESSAGE_BYTES`` is refused with an ``error`` push and the socket stays open.
+_WS_FRAME_LIMIT = 1 << 20
 
 
 def _load_static() -> dict[str, tuple[bytes, str]]:
@@ -200,7 +215,10 @@ class WebController:
         self.desk = Desk(idle_release_s)
         self.hub = FrameHub(jpeg_quality)
         self.commands = 0  # drive commands applied
-        self.bad_commands = 0
+        self.bad_commands = 0  # messages refused (a bad value, not JSON, too large, ...)
+        self.gate: Gate
+        self.intake: Intake
+        self.use_contracts(Contracts())  # until Vehicle.add gives the car's own
         self.ticks = 0
         self.last_health: dict[str, Any] | None = None
         #: set (from the loop) once the server listens; threads may wait on it
@@ -213,10 +231,22 @@ class WebController:
         self._stop: asyncio.Event | None = None
         self._served: asyncio.Future[None] | None = None
         self._access: Access | None = None
+        self._sessions = Sessions(port, secure=ssl_context is not None)
         self._static = _load_static()
         self._log = LogThrottle(5.0)
 
     # ================================================================================== part contract
+    def use_contracts(self, contracts: Contracts) -> None:
+        """Check what clients send against ``contracts`` (the car's: ``Vehicle.add`` calls this). Until then,
+        and for a controller never added to a vehicle, the default contracts apply."""
+        self.gate = contracts.gate("web")
+        self.intake = Intake(self.gate, self.modes, self._now)
+
+    @property
+    def refused_values(self) -> dict[str, dict[str, int]]:
+        """Values refused at the web boundary, ``{channel: {reason: count}}`` (also in ``/status``)."""
+        return self.gate.counts()
+
     def run(
         self, img_arr: Any = None, num_records: Any = 0, mode: Any = None, recording: Any = None
     ) -> tuple[float, float, str, bool, dict[str, bool]]:
@@ -272,6 +302,7 @@ class WebController:
             self.port = await self._listen(runner)
             assert self._access is not None
             self._access.cookie = f"asyncdonkey-token-{self.port}"
+            self._sessions.cookie = f"asyncdonkey-session-{self.port}"
             self._origin = clock.now()
             urls = await loop.run_in_executor(None, self._urls)  # may ask the resolver for this host's addresses
             self.url = urls[0]
@@ -331,25 +362,30 @@ class WebController:
             clock = self._clock = get_clock()
         return clock.now()
 
-    def apply(self, client: object, cmd: Command) -> str:
+    def apply(self, client: object | None, cmd: Command) -> str:
         """Apply one command from ``client``; returns its role afterwards (``you``, ``other`` or ``free``).
 
-        Raises :class:`~.desk.CommandError` for a drive mode not in ``modes`` (nothing of the command is applied).
+        ``client`` ``None`` is a script without a session: it never holds control (its drive commands apply only
+        while nobody holds it, and its stop frees control instead of taking it). Raises
+        :class:`~.desk.CommandError` for a drive mode not in ``modes`` (nothing of the command is applied).
         """
         if cmd.mode is not None and cmd.mode not in self.modes:
             raise CommandError(f"web command: drive mode {cmd.mode!r} is not available here (modes: {self.modes})")
         now = self._now()
         before = self.desk.driver
         if cmd.stop:
-            self.desk.claim(client, now, force=True)
+            if client is None:
+                self.desk.free()
+            else:
+                self.desk.claim(client, now, force=True)
             self.throttle = 0.0
             self._mode_latch = USER  # the pilot loses the car too
             self._origin = now
             logger.warning("web: stop from %s", _name(client))
-        if cmd.release and self.desk.release(client):
+        if cmd.release and client is not None and self.desk.release(client):
             self._on_release("released")
         if cmd.drives:
-            if not self.desk.claim(client, now):
+            if not self._may_drive(client, now):
                 return "other"
             if cmd.angle is not None:
                 self.angle = cmd.angle
@@ -369,6 +405,15 @@ class WebController:
             self._push_roles()
         return self.desk.role(client, now)
 
+    def _may_drive(self, client: object | None, now: float) -> bool:
+        """Control for this command: claimed by a client (a socket, a session), only borrowed by one without."""
+        if client is not None:
+            return self.desk.claim(client, now)
+        if self.desk.is_free(now):
+            return True
+        self.desk.refused += 1
+        return False
+
     def _on_release(self, why: str) -> None:
         """The driver let go: neutral command, but with the *old* arrival time, so the failsafe sees its age."""
         self.throttle = 0.0
@@ -379,7 +424,10 @@ class WebController:
     # ================================================================================== server
     def _make_app(self) -> web.Application:
         self._access = Access(self.token, self.port, on_admit=self.guard.admit)
-        app = web.Application(middlewares=[self._access.middleware, _security_headers])
+        # a body over the message limit is refused when read (never buffered whole): see _read_body
+        app = web.Application(
+            middlewares=[self._access.middleware, _security_headers], client_max_size=MAX_MESSAGE_BYTES
+        )
         app.router.add_get("/", self._root)
         app.router.add_get("/drive", self._page("drive.html"))
         app.router.add_post("/drive", self._post_drive)
@@ -421,6 +469,8 @@ class WebController:
             "command_age_s": (now - self._origin) if self._origin is not None else None,
             "commands": self.commands,
             "refused": self.desk.refused,
+            "bad_commands": self.bad_commands,
+            "refused_values": self.gate.counts(),
             "viewers": self.hub.viewers,
             "encodes": self.hub.encodes,
             "health": self.last_health,
@@ -428,27 +478,42 @@ class WebController:
         }
 
     async def _get_status(self, request: web.Request) -> web.StreamResponse:
-        return web.json_response(self.state(f"http:{request.remote}"))
+        return web.json_response(self.state(self._session_client(request)))
+
+    def _session_client(self, request: web.Request) -> str | None:
+        """The ``POST`` client a request comes from: its session, or ``None`` (no session: never holds control)."""
+        session = self._sessions.of(request)
+        return None if session is None else f"session:{session}"
 
     async def _post_drive(self, request: web.Request) -> web.StreamResponse:
         _check_origin(request)
+        client = self._session_client(request)
         try:
-            cmd = parse_command(await request.json())
-        except (ValueError, CommandError) as exc:  # json.JSONDecodeError is a ValueError
-            self.bad_commands += 1
-            return web.json_response({"error": str(exc)}, status=400)
-        try:
-            role = self.apply(f"http:{request.remote}", cmd)
+            cmd = self.intake.command(self.intake.decode(await self._read_body(request)))
+            role = self.apply(client, cmd)
         except CommandError as exc:
             self.bad_commands += 1
-            return web.json_response({"error": str(exc)}, status=400)
-        if role == "other" and cmd.drives:
-            return web.json_response({"control": role, "error": "another client is driving"}, status=409)
-        return web.json_response({"control": role})
+            resp = web.json_response({"error": str(exc)}, status=400)
+        else:
+            if role == "other" and cmd.drives:
+                resp = web.json_response({"control": role, "error": "another client is driving"}, status=409)
+            else:
+                resp = web.json_response({"control": role})
+        if client is None:
+            self._sessions.issue(resp)  # a client that keeps it can hold control from its next command
+        return resp
+
+    async def _read_body(self, request: web.Request) -> bytes:
+        """The request's body, up to :data:`MAX_MESSAGE_BYTES`: a larger one is a refused value (400), never
+        held whole (aiohttp reads the rest after the answer and throws it away, within its lingering time)."""
+        try:
+            return await request.read()
+        except web.HTTPRequestEntityTooLarge:
+            raise self.intake.refuse(COMMAND, "size", f"a body over {MAX_MESSAGE_BYTES} bytes") from None
 
     async def _ws_drive(self, request: web.Request) -> web.StreamResponse:
         _check_origin(request)
-        ws = web.WebSocketResponse(heartbeat=2.0)
+        ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=_WS_FRAME_LIMIT)
         await ws.prepare(request)
         role = self.desk.role(ws, self._now())
         self._clients[ws] = role
@@ -464,52 +529,93 @@ class WebController:
         await ws.send_json(hello)
         try:
             async for msg in ws:
-                if msg.type is WSMsgType.TEXT:
-                    self._on_message(ws, msg.data)
+                self._on_message(ws, msg)
         finally:
             self._clients.pop(ws, None)
             if self.desk.release(ws):
                 self._on_release("closed the page")
         return ws
 
-    def _on_message(self, ws: web.WebSocketResponse, text: str) -> None:
+    def _on_message(self, ws: web.WebSocketResponse, msg: Any) -> None:
+        """One message from a drive page: applied, or refused with an ``error`` push; the socket stays open
+        whatever it carried (a dropped driver's socket would release control: one bad value must not)."""
         try:
-            role = self.apply(ws, parse_command(json.loads(text)))
-        except (ValueError, CommandError) as exc:
+            role = self.apply(ws, self.intake.command(self.intake.decode(_text(msg, self.intake))))
+        except CommandError as exc:
             self.bad_commands += 1
             self._send(ws, {"error": str(exc)})
+            return
+        except Exception as exc:  # a bug here must not drop the driver: say so loudly, keep the socket
+            self._internal_error(ws, exc)
             return
         if self._clients.get(ws) != role:
             self._clients[ws] = role
             self._send(ws, {"control": role})
 
+    def _internal_error(self, ws: web.WebSocketResponse, exc: Exception) -> None:
+        self.bad_commands += 1
+        held = self._log.ready("internal", self._now(), "failures")
+        if held is not None:
+            logger.error("web: a message could not be handled%s", held, exc_info=exc)
+        self._send(ws, {"error": f"web: the car could not handle that message ({type(exc).__name__})"})
+
     async def _ws_calibrate(self, request: web.Request) -> web.StreamResponse:
         _check_origin(request)
-        ws = web.WebSocketResponse(heartbeat=2.0)
+        ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=_WS_FRAME_LIMIT)
         await ws.prepare(request)
         await ws.send_json({"config": current_calibration(self.steering, self.throttle_part)})
         try:
             async for msg in ws:
-                if msg.type is not WSMsgType.TEXT:
-                    continue
-                try:
-                    data = json.loads(msg.data)
-                    if not isinstance(data, dict):
-                        raise CommandError("calibration: expected a JSON object")
-                    if "config" in data:
-                        applied = apply_calibration(self.steering, self.throttle_part, data["config"])
-                        logger.info("web: calibration set to %s", applied)
-                        await ws.send_json({"config": applied})
-                    drive = {k: data[k] for k in ("angle", "throttle") if k in data}
-                    if drive:
-                        role = self.apply(ws, parse_command(drive))
-                        await ws.send_json({"control": role})
-                except (ValueError, CalibrationError, CommandError) as exc:
-                    await ws.send_json({"error": str(exc)})
+                for payload in self._on_calibrate_message(ws, msg):
+                    await _send_json(ws, payload)
         finally:
             if self.desk.release(ws):
                 self._on_release("closed the calibration page")
         return ws
+
+    def _on_calibrate_message(self, ws: web.WebSocketResponse, msg: Any) -> list[dict[str, Any]]:
+        """One message from the calibration page (``config``, then test ``angle``/``throttle``); the answers."""
+        try:
+            data = self.intake.decode(_text(msg, self.intake), CALIBRATION)
+            drive = {k: data[k] for k in ("angle", "throttle") if k in data}
+            cmd = self.intake.command(drive) if drive else None  # admitted first: the message is taken whole
+            out: list[dict[str, Any]] = []
+            if "config" in data:
+                out.append(self._calibrate(ws, data["config"]))
+            if cmd is not None:
+                out.append({"control": self.apply(ws, cmd)})
+            return out
+        except WebConfigError as exc:  # CommandError, CalibrationError
+            self.bad_commands += 1
+            answer: dict[str, Any] = {"error": str(exc)}
+            if isinstance(exc, CalibrationError) and exc.in_force is not None:
+                answer["config"] = exc.in_force
+            return [answer]
+        except Exception as exc:
+            self._internal_error(ws, exc)
+            return []
+
+    def _calibrate(self, client: object, config: object) -> dict[str, Any]:
+        """Set a calibration for the client holding control (a calibration message takes control when nobody
+        holds it, as a drive command does) while the car is stopped; the answer is the calibration in force."""
+        pulses = admit_config(self.intake, config)
+        before = self.desk.driver
+        try:
+            if not self.desk.claim(client, self._now()):
+                raise CalibrationError(
+                    "calibration: another client is driving; only the driver can calibrate", reason="not_driver"
+                )
+            if self.desk.driver is not before:
+                self._push_roles()
+            moving = why_not_stopped(self.throttle, self.mode, self.throttle_part)
+            if moving is not None:
+                raise CalibrationError(f"calibration: the car must be stopped to calibrate: {moving}", reason="moving")
+            applied = apply_calibration(self.steering, self.throttle_part, pulses)
+        except CalibrationError as exc:
+            self.gate.refuse(exc.channel, exc.reason, str(exc), self._now())
+            raise
+        logger.info("web: calibration set to %s by %s", applied, _name(client))
+        return {"config": applied}
 
     # ================================================================================== pushes
     def _send(self, ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:
@@ -620,7 +726,18 @@ def _check_origin(request: web.Request) -> None:
 
 
 def _name(client: object) -> str:
+    if client is None:
+        return "a script without a session"
     return client if isinstance(client, str) else f"a page ({id(client):x})"
+
+
+def _text(msg: Any, intake: Intake) -> str:
+    """A WebSocket message's text; a binary one is a refused value (Donkeycar's messages are JSON text)."""
+    if msg.type is WSMsgType.TEXT:
+        return str(msg.data)
+    if msg.type is WSMsgType.ERROR:  # a frame over the socket's limit, a protocol error: the socket closes
+        raise intake.refuse(COMMAND, "protocol", str(msg.data)[:80])
+    raise intake.refuse(COMMAND, "type", f"a {msg.type.name.lower()} message (expected JSON text)")
 
 
 async def _send_json(ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:

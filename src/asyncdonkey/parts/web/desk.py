@@ -1,4 +1,4 @@
-"""One driver at a time: who holds the controls, and what a drive command may contain.
+"""One driver at a time: who holds the controls (what a command may contain is :mod:`.intake`'s).
 
 With Donkeycar's web controller every open page sends its joystick, so two phones fight over the car and the
 one whose stick is at rest keeps sending zeros. Here the car has one *driver* at a time; every other page
@@ -12,94 +12,24 @@ watches (video, mode, record count, health) and its drive commands are ignored. 
   connection drops, or it goes quiet for ``idle_release_s``.
 * **Stop is for everyone**: ``{"stop": true}`` from any client stops the car (throttle 0, mode ``user``) and
   hands control to that client, so a watcher can always stop a car someone else drives.
+* **Who is a client**: a WebSocket is one; a ``POST /drive`` script is its *session*, a cookie the server sets
+  (never its address: two scripts on one machine are two clients). A script that does not return the cookie
+  has no session and never holds control: each of its commands applies only while nobody holds it (as with
+  Donkeycar, where every ``POST`` drives), and its stop frees control rather than holding it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
 
-from ..control import normalise_mode
 from .auth import WebConfigError
+from .intake import Command, CommandError, parse_command
 
 __all__ = ["Command", "CommandError", "Desk", "parse_command"]
 
 
-class CommandError(WebConfigError):
-    """A drive command that cannot be used (the message names the key and what was expected)."""
-
-
-@dataclass
-class Command:
-    """One parsed message: Donkeycar's keys (``None``: not given) and ours (``stop``, ``release``)."""
-
-    angle: float | None = None
-    throttle: float | None = None
-    mode: str | None = None
-    recording: bool | None = None
-    buttons: dict[str, bool] | None = None
-    stop: bool = False
-    release: bool = False
-
-    @property
-    def drives(self) -> bool:
-        """True when the message asks to drive (needs control); ``stop`` and ``release`` alone do not."""
-        return (
-            self.angle is not None
-            or self.throttle is not None
-            or self.mode is not None
-            or self.recording is not None
-            or bool(self.buttons)
-        )
-
-
-def _unit(data: dict[str, Any], key: str) -> float | None:
-    v = data.get(key)
-    if v is None:
-        return None
-    if isinstance(v, bool):
-        raise CommandError(f"web command: {key!r} must be a number in [-1, 1], got {v!r}")
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        raise CommandError(f"web command: {key!r} must be a number in [-1, 1], got {v!r}") from None
-    if not math.isfinite(f):
-        raise CommandError(f"web command: {key!r} must be a finite number, got {v!r}")
-    return -1.0 if f < -1.0 else 1.0 if f > 1.0 else f
-
-
-def parse_command(data: object) -> Command:
-    """Validate a decoded JSON message (Donkeycar's ``angle, throttle, drive_mode, recording, buttons``).
-
-    Numbers are clamped to [-1, 1]; a mode must be one of the drive modes (a typo must not hand the car to the
-    pilot); ``recording`` must be a boolean; ``buttons`` a mapping of names to booleans.
-    """
-    if not isinstance(data, dict):
-        raise CommandError(f"web command: expected a JSON object, got {type(data).__name__}")
-    cmd = Command(angle=_unit(data, "angle"), throttle=_unit(data, "throttle"))
-    if data.get("drive_mode") is not None:
-        try:
-            cmd.mode = normalise_mode(data["drive_mode"], "web command 'drive_mode'")
-        except ValueError as exc:
-            raise CommandError(str(exc)) from None
-    rec = data.get("recording")
-    if rec is not None:
-        if not isinstance(rec, bool):
-            raise CommandError(f"web command: 'recording' must be true or false, got {rec!r}")
-        cmd.recording = rec
-    buttons = data.get("buttons")
-    if buttons is not None:
-        if not isinstance(buttons, dict):
-            raise CommandError(f"web command: 'buttons' must be an object of name: true/false, got {buttons!r}")
-        cmd.buttons = {str(k): bool(v) for k, v in buttons.items()}
-    cmd.stop = data.get("stop") is True
-    cmd.release = data.get("release") is True
-    return cmd
-
-
 class Desk:
-    """Who drives. Clients are identified by any hashable id (a WebSocket, ``"http:<peer>"`` for ``POST``).
+    """Who drives. Clients are identified by any hashable id (a WebSocket, ``"session:<id>"`` for ``POST``).
 
     Args:
         idle_release_s: a driver that sends nothing for this long loses control to the next client that drives.
@@ -134,6 +64,13 @@ class Desk:
             self.driver = None
             return True
         return False
+
+    def free(self) -> bool:
+        """Take control from whoever holds it (a stop from a client without a session). True when someone did."""
+        if self.driver is None:
+            return False
+        self.driver = None
+        return True
 
     def expire(self, now: float) -> bool:
         """Release a driver that went quiet; true when one was released."""

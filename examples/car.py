@@ -38,8 +38,10 @@ and back. The simulated car has no ESC, so a :class:`~asyncdonkey.parts.failsafe
 
 With ``--pilot remote`` the pilot runs in another process or on another machine (``examples/remote_pilot.py``):
 the car publishes its camera frames, telemetry and status over Zenoh under ``cars/sim`` and takes
-``pilot/angle, pilot/throttle`` from the network; a :class:`StaleCommandStop` before the simulated car stops it
-when the remote command is ``--failsafe-ms`` old (see ``docs/scale-out.md``).
+``pilot/angle, pilot/throttle`` from the network, together as one sample (``cars/sim/pilot/command``), each
+checked against its channel's contract (a bad value is refused and counted, never applied); a
+:class:`StaleCommandStop` before the simulated car stops it when the remote command is ``--failsafe-ms`` old
+(see ``docs/scale-out.md``).
 """
 
 from __future__ import annotations
@@ -258,12 +260,14 @@ def make_car(
     prefix: str = REMOTE_PREFIX,
     jpeg: int | None = None,
     failsafe_s: float = 0.25,
+    insecure: bool = False,
 ) -> tuple[Vehicle, SimCar]:
     """Assemble the simulated car. ``pilot`` is a model path (``.onnx`` or ``.tflite``), ``"user"`` (no pilot) or
     ``"remote"``.
 
     ``"remote"``: the pilot's commands come over Zenoh (``zenoh`` is the session config or config file) under
-    ``prefix``; the camera goes out raw, or as JPEG of quality ``jpeg``.
+    ``prefix``; the camera goes out raw, or as JPEG of quality ``jpeg``. ``insecure``: take the commands even
+    from a session others can publish to (an isolated bench network only).
 
     ``pilot_mode``: ``"in-order"`` (the pilot inside the tick, as Donkeycar runs it), ``"pipelined"`` (beside
     the ticks, started each tick) or ``"frame"`` (beside the ticks, started by each new camera frame, with the
@@ -285,9 +289,9 @@ def make_car(
     v.add(car.camera, outputs=["cam/image_array"])
     v.add(car.telemetry, outputs=list(TELEMETRY_OUTPUTS))
     if remote:
-        from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber
+        from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber
 
-        link = ZenohLink(prefix, zenoh)
+        link = ZenohLink(prefix, zenoh, insecure=insecure)
         frames_at_capture = pilot_mode == "frame"
         camera_out = ZenohPublisher(
             link,
@@ -314,8 +318,9 @@ def make_car(
     # frame mode: the drive mode and the car take each command the moment it exists (from the pipelined pilot,
     # or as it arrives from the network for a remote pilot), not at the next tick
     react = not user_only and pilot_mode == "frame"
-    if remote:
-        v.add(ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"]), outputs=["pilot/angle", "pilot/throttle"])
+    if remote:  # angle and throttle in one sample: applied together, with one origin
+        commands = ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"], group=PILOT_COMMAND)
+        v.add(commands, outputs=["pilot/angle", "pilot/throttle"])
     elif not user_only:
         from asyncdonkey.parts.pilot import load_pilot  # the runtime loads only when a pilot drives
 
@@ -419,13 +424,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     net = ap.add_argument_group("remote pilot (--pilot remote)")
     net.add_argument("--zenoh-config", metavar="FILE", help="Zenoh config file (e.g. car.json5 from zenoh-pair)")
-    net.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447")
+    net.add_argument(
+        "--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 on a bench"
+    )
     net.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT")
     net.add_argument(
         "--prefix", default=REMOTE_PREFIX, help=f"key prefix of the car's channels (default {REMOTE_PREFIX})"
     )
     net.add_argument("--jpeg", type=int, metavar="QUALITY", help="send camera frames as JPEG of this quality")
     net.add_argument("--failsafe-ms", type=float, default=250, help="stop when the command is this old (default 250)")
+    net.add_argument(
+        "--zenoh-insecure",
+        action="store_true",
+        help="take commands even from a session others can publish to (plain TCP beyond loopback, no access "
+        "rules): an isolated bench network only",
+    )
     args = ap.parse_args(argv)
     if args.seconds is None:  # --laps N or --web drive without a time limit; otherwise DEFAULT_SECONDS
         args.seconds = 0.0 if args.laps or args.web else DEFAULT_SECONDS
@@ -471,5 +484,6 @@ def build(argv: list[str]) -> Vehicle:
         prefix=args.prefix,
         jpeg=args.jpeg,
         failsafe_s=args.failsafe_ms / 1e3,
+        insecure=args.zenoh_insecure,
     )
     return vehicle

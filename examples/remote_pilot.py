@@ -1,4 +1,4 @@
-"""The off-board pilot: camera frames in over Zenoh, ``OnnxPilot`` on them, ``pilot/angle, pilot/throttle`` out.
+"""The off-board pilot: camera frames in over Zenoh, ``OnnxPilot`` on them, its command out as one sample.
 
 Run the simulated car in one terminal (or on the car), this in another (or on a laptop)::
 
@@ -16,7 +16,8 @@ ZenohSubscriber (pushes)                                                  cam/im
                                                                           capture time, carried across)
 OnnxPilot (pipelined,     cam/image_array                                 pilot/angle, pilot/throttle
 started by each frame)
-ZenohPublisher (react)    pilot/*, pilot/*@age
+ZenohPublisher (react,    pilot/*, pilot/*@age
+group pilot/command)
 ========================= =============================================== =====================================
 
 Each frame starts the pilot the moment it arrives (the subscriber pushes it into Memory, the pilot is
@@ -24,6 +25,9 @@ triggered by ``cam/image_array``), and the publisher sends each command the mome
 (``react=True``), so no tick period is added on this side. The commands inherit the frame's origin, so the age
 the car sees on ``pilot/throttle`` is the whole camera-to-command time: the car's capture, the link both ways
 and the inference. The ticks (20 Hz) also re-send the newest command with its true (growing) age.
+
+Angle and throttle travel together as one sample on ``cars/sim/pilot/command`` (``group=PILOT_COMMAND``): the
+car applies both at once with that sample's origin, never a new angle with the previous throttle.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from typing import Any
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.pilot import OnnxPilot
-from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
+from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 
 DRIVE_LOOP_HZ = 20
 DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "sim_pilot.onnx"
@@ -52,7 +56,7 @@ def make_pilot(model: str | Path = DEFAULT_MODEL, *, zenoh: Any = None, prefix: 
         pipelined=True,
         trigger="cam/image_array",
     )
-    commands = ZenohPublisher(link, ["pilot/angle", "pilot/throttle"])
+    commands = ZenohPublisher(link, ["pilot/angle", "pilot/throttle"], group=PILOT_COMMAND)
     v.add(commands, inputs=commands.inputs, react=True)
     return v
 

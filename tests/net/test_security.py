@@ -16,8 +16,8 @@ import pytest
 from zenoh_loopback import free_port, until
 
 from asyncdonkey.cli import main
-from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
-from asyncdonkey.parts.zenoh.link import exposure
+from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
+from asyncdonkey.parts.zenoh.link import exposure, link_config
 from asyncdonkey.parts.zenoh.pairing import make_pair
 
 CMD = ["pilot/angle", "pilot/throttle"]
@@ -76,6 +76,7 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
     links = [car, pilot, view, impostor, plain]
     try:
         sub = ZenohSubscriber(car, CMD)
+        one_sample = ZenohSubscriber(car, CMD, group=PILOT_COMMAND, ping_every_s=0)
         telemetry = ZenohPublisher(car, ["sim/cte"])
         view_sub = ZenohSubscriber(view, ["sim/cte"], ping_every_s=0)
         pilot_pub = ZenohPublisher(pilot, CMD)
@@ -103,24 +104,36 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
         # the allowed pilot still drives after all that
         assert await until(lambda: (pilot_pub.run(0.0, 0.2, 0, 0), sub.run() == (0.0, 0.2))[1])
         assert sub.unexpected == 0
+        # the one-sample command (pilot/command) is the pilot's alone as well
+        groups = {who: ZenohPublisher(who, CMD, group=PILOT_COMMAND) for who in (pilot, view, impostor, plain)}
+        assert await until(lambda: (groups[pilot].run(0.3, 0.5, 0, 0), one_sample.run() == (0.3, 0.5))[1])
+        taken = await _settled(lambda: one_sample.received)
+        for _ in range(25):
+            for who in (view, impostor, plain):
+                groups[who].run(-1.0, 1.0, 0, 0)
+            await asyncio.sleep(0.02)
+        assert one_sample.run() == (0.3, 0.5) and one_sample.received == taken
+        assert one_sample.counters()["refused"] == 0 and one_sample.unexpected == 0
         update.cancel()
     finally:
         for link in links:
             link.close()
 
 
-def test_open_sessions_are_named_and_a_command_subscriber_on_one_warns(pair, caplog):
+def test_open_sessions_are_named_and_a_subscriber_on_one_warns(pair, caplog):
     files, _, port = pair
     assert exposure(zenoh_config(files.car_config)) == []
     assert exposure(zenoh_config(files.pilot_config)) == []
-    assert exposure(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port + 1}"])) == []  # loopback only
-    assert exposure(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"])) == [
+    loopback = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port + 1}"])
+    assert exposure(loopback) == ["scouts by UDP multicast (it connects to the sessions it finds on the LAN)"]
+    assert exposure(link_config(loopback)) == []  # loopback only, and the link turns Zenoh's scouting off
+    assert exposure(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"], multicast_scouting=False)) == [
         "listens on tcp/0.0.0.0:7447 without TLS"
     ]
-    assert exposure(zenoh_config(mode="client", connect=["tcp/192.0.2.1:7447"])) == [
+    assert exposure(link_config(zenoh_config(mode="client", connect=["tcp/192.0.2.1:7447"]))) == [
         "connects to tcp/192.0.2.1:7447 without TLS"
     ]
-    assert exposure(zenoh_config(mode="peer", listen=["tls/0.0.0.0:7447"])) == [
+    assert exposure(link_config(zenoh_config(mode="peer", listen=["tls/0.0.0.0:7447"]))) == [
         "listens on tls/0.0.0.0:7447 without client certificates"
     ]
     assert "every interface" in exposure(None)[0]
@@ -129,10 +142,10 @@ def test_open_sessions_are_named_and_a_command_subscriber_on_one_warns(pair, cap
     link = ZenohLink(
         "cars/open", zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], multicast_scouting=False)
     )
-    link.exposure = exposure(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"]))
+    link.exposure = exposure(link_config(zenoh_config(mode="peer", listen=["tcp/0.0.0.0:7447"])))
     try:
-        with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
-            ZenohSubscriber(link, CMD)
+        with caplog.at_level(logging.WARNING):
+            ZenohSubscriber(link, ["cam/image_array"])  # not a command: taken, with a warning
         assert "anyone who can reach this session can write these channels" in caplog.text
         assert "listens on tcp/0.0.0.0:7447 without TLS" in caplog.text and "zenoh-pair" in caplog.text
     finally:
@@ -149,6 +162,7 @@ def test_pair_writes_private_keys_owner_only_and_a_deny_by_default_car(pair):
     assert acl["enabled"] and acl["default_permission"] == "deny"
     commands = next(r for r in acl["rules"] if r["id"] == "pilot-commands")
     assert commands["flows"] == ["ingress"] and "cars/car1/pilot/throttle" in commands["key_exprs"]
+    assert "cars/car1/pilot/command" in commands["key_exprs"]  # the one-sample command
     assert {"id": "pilot-host", "cert_common_names": ["laptop"]} in acl["subjects"]
     pilot = _json5(files.pilot_config)
     assert pilot["connect"]["endpoints"] == [f"tls/127.0.0.1:{port}"] and pilot["listen"]["endpoints"] == []

@@ -3,15 +3,19 @@
 Needs the ``zenoh`` extra (``pip install 'asyncdonkey[zenoh]'``). See ``docs/scale-out.md``.
 
 * :class:`ZenohLink`, :func:`zenoh_config` — one session and the key prefix of a car's channels.
-* :class:`ZenohPublisher`, :class:`ZenohSubscriber` — the parts.
+* :class:`ZenohPublisher`, :class:`ZenohSubscriber` — the parts (``group=PILOT_COMMAND``: the remote
+  pilot's angle and throttle as one sample).
 * :mod:`.codec` — the wire format (documented for non-Python clients).
 """
 
 from .codec import CodecError, decode, encode
-from .link import ZenohConfigError, ZenohLink, zenoh_config
+from .link import ZenohConfigError, ZenohLink, link_config, zenoh_config
+from .pairing import COMMAND_CHANNELS, PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
 
 __all__ = [
+    "COMMAND_CHANNELS",
+    "PILOT_COMMAND",
     "CodecError",
     "ZenohConfigError",
     "ZenohLink",
@@ -19,5 +23,6 @@ __all__ = [
     "ZenohSubscriber",
     "decode",
     "encode",
+    "link_config",
     "zenoh_config",
 ]

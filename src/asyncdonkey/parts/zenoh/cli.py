@@ -38,7 +38,7 @@ def add_zenoh_parsers(sub: Any) -> None:
         action="append",
         dest="commands",
         metavar="CHANNEL",
-        help="a channel the pilot may command (repeatable; default pilot/angle and pilot/throttle)",
+        help="a channel the pilot may command (repeatable; default pilot/command, pilot/angle and pilot/throttle)",
     )
     pair.add_argument(
         "--view", action="append", default=[], metavar="NAME", help="also a read-only fleet view identity"
@@ -60,7 +60,7 @@ def add_zenoh_parsers(sub: Any) -> None:
 
 def _cmd_pair(args: argparse.Namespace) -> int:
     try:
-        from .pairing import make_pair
+        from .pairing import DEFAULT_COMMANDS, make_pair
     except ImportError as exc:  # pragma: no cover - the zenoh extra is missing
         print(
             f"asyncdonkey zenoh-pair: needs the zenoh extra (pip install 'asyncdonkey[zenoh]'): {exc}", file=sys.stderr
@@ -75,7 +75,7 @@ def _cmd_pair(args: argparse.Namespace) -> int:
             port=args.port,
             listen_host=args.listen_host,
             prefix=args.prefix,
-            commands=args.commands or ("pilot/angle", "pilot/throttle"),
+            commands=args.commands or DEFAULT_COMMANDS,
             views=args.view,
             car_dir=args.car_dir,
             pilot_dir=args.pilot_dir,

@@ -17,6 +17,12 @@ list or dict
 bytes                            ``application/octet-stream``                   as is
 ================================ ============================================== ==================================
 
+A **command group** (``ZenohPublisher(..., group="pilot/command")``) sends several channels as one sample on
+one key, so a receiver applies them together with one origin (a steering and a throttle that never arrive
+half-new): encoding ``application/json;group;v=1``, payload a UTF-8 JSON object with exactly the group's
+channels, e.g. ``{"pilot/angle":-0.12,"pilot/throttle":0.45}``. ``v`` is the version of this layout; a receiver
+refuses a version it does not know.
+
 The **attachment** of every sample is 24 bytes, little-endian: ``float64`` age in seconds of the sensing behind
 the value at the moment it was sent, ``uint64`` sequence number of the sample on its key (1, 2, ...), and
 ``uint64`` source: a random number drawn by each publisher when it starts, so a receiver can tell a restarted
@@ -39,6 +45,8 @@ from ...errors import AsyncdonkeyError
 
 __all__ = [
     "ATTACHMENT",
+    "GROUP",
+    "GROUP_VERSION",
     "JPEG",
     "JSON",
     "NDARRAY",
@@ -46,7 +54,9 @@ __all__ = [
     "CodecError",
     "Encoded",
     "decode",
+    "decode_group",
     "encode",
+    "encode_group",
     "pack_attachment",
     "unpack_attachment",
 ]
@@ -55,6 +65,8 @@ OCTET = "application/octet-stream"
 NDARRAY = "application/octet-stream;ndarray"
 JPEG = "image/jpeg"
 JSON = "application/json"
+GROUP = "application/json;group"
+GROUP_VERSION = 1
 ATTACHMENT = struct.Struct("<dQQ")
 
 
@@ -160,6 +172,35 @@ def decode(payload: bytes, encoding: str, key: str = "?") -> Any:
     if base in ("text/plain", "zenoh/string"):
         return payload.decode("utf-8", errors="replace")
     raise CodecError(f"key {key!r}: unsupported encoding {encoding!r} (expected {NDARRAY}, {JPEG}, {JSON} or {OCTET})")
+
+
+def encode_group(values: dict[str, Any], group: str) -> Encoded:
+    """Encode a command group (channel -> value, JSON scalars) as one sample (see the module docstring)."""
+    try:
+        text = json.dumps(values, separators=(",", ":"), allow_nan=True, default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise CodecError(f"group {group!r}: cannot send {list(values)} as JSON: {exc}") from None
+    return Encoded(text.encode(), f"{GROUP};v={GROUP_VERSION}")
+
+
+def decode_group(payload: bytes, encoding: str, channels: tuple[str, ...], key: str = "?") -> tuple[Any, ...]:
+    """The values of ``channels``, in that order, from a command group sample; :class:`CodecError` for anything
+    but this layout's version with exactly those channels."""
+    base, _, schema = encoding.partition(";")
+    fields = schema.split(";")
+    if base != JSON or fields[0] != "group":
+        raise CodecError(f"key {key!r}: expected a command group ({GROUP};v={GROUP_VERSION}), got {encoding!r}")
+    params = dict(f.partition("=")[::2] for f in fields[1:])
+    if params.get("v") != str(GROUP_VERSION):
+        raise CodecError(f"key {key!r}: command group version {params.get('v')!r}, expected {GROUP_VERSION}")
+    try:
+        doc = json.loads(payload)
+    except ValueError as exc:
+        raise CodecError(f"key {key!r}: payload is not valid JSON: {exc}") from None
+    if not isinstance(doc, dict) or set(doc) != set(channels):
+        what = f"keys {sorted(doc)[:8]}" if isinstance(doc, dict) else f"a {type(doc).__name__}"
+        raise CodecError(f"key {key!r}: expected an object with exactly {list(channels)}, got {what}")
+    return tuple(doc[ch] for ch in channels)
 
 
 def _ndarray(payload: bytes, schema: str, key: str) -> np.ndarray:

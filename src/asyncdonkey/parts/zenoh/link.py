@@ -12,6 +12,13 @@ pinger keeps the round-trip times of its last pings. ``transit_s`` is half the s
 this sample's one-way transit and ``transit_s``: never more than half a round trip on a symmetric link, plus
 whatever one-way queueing this sample met beyond the best recent round trip (which makes the age *too young*
 by that much; the failsafe window must leave room for it). ``rtt_s`` gives the figures for a status line.
+
+**Closed unless told otherwise.** Zenoh's own defaults listen on every interface and scout by UDP multicast, so
+any session on the LAN can find a car and publish to it. A link fills in what its config leaves unset with the
+closed choice (:func:`link_config`): listening on 127.0.0.1 only, multicast scouting off. Listening beyond
+loopback is written in the config (``listen=["tcp/0.0.0.0:7447"]``, or the car config of ``zenoh-pair``). A
+subscriber that takes the car's command channels refuses to start on a session others can publish to
+(:meth:`ZenohLink.guard_commands`) unless the link was made with ``insecure=True``.
 """
 
 from __future__ import annotations
@@ -27,14 +34,17 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import AsyncdonkeyError
+from .pairing import COMMAND_CHANNELS
 
-__all__ = ["ZenohConfigError", "ZenohLink", "exposure", "zenoh_config"]
+__all__ = ["LOOPBACK_LISTEN", "ZenohConfigError", "ZenohLink", "exposure", "link_config", "zenoh_config"]
 
 logger = logging.getLogger(__name__)
 
 _PING = struct.Struct("<d")
 #: Keys under the prefix that belong to the link itself, not to Memory channels.
 INTERNAL = "_rtt"
+#: where a link listens when its config does not say (per mode, as Zenoh writes its own default): loopback only
+LOOPBACK_LISTEN = {"router": ["tcp/127.0.0.1:7447"], "peer": ["tcp/127.0.0.1:0"]}
 
 
 class ZenohConfigError(AsyncdonkeyError, ValueError):
@@ -106,12 +116,45 @@ def _loopback(endpoint: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
+def link_config(config: Any = None) -> Any:
+    """The ``zenoh.Config`` a :class:`ZenohLink` opens: ``config`` (a ``zenoh.Config``, filled in where it is;
+    a config file; or ``None``) with unset listen endpoints made loopback only (:data:`LOOPBACK_LISTEN`) and
+    unset multicast scouting turned off.
+
+    Why: left unset, Zenoh listens on every interface (``tcp/[::]:0``) and scouts by multicast, and a peer that
+    scouts connects to every peer it finds; any session on the LAN could then publish to the car. What a config
+    says explicitly is kept, and judged by :func:`exposure`. (A ``zenoh.Config`` cannot be copied without
+    losing the secrets it holds inline, so it is filled in place.)
+    """
+    import zenoh
+
+    if config is None:
+        config = zenoh.Config()
+    elif isinstance(config, str | Path):
+        config = zenoh_config(config)
+    if config.get_json("listen/endpoints") == zenoh.Config().get_json("listen/endpoints"):  # unset: the default
+        config.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN))
+    if _json(config, "scouting/multicast/enabled") is None:
+        config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def _endpoints(cfg: Any, kind: str, mode: str) -> list[str]:
+    endpoints = _json(cfg, f"{kind}/endpoints") or []
+    if isinstance(endpoints, dict):
+        endpoints = endpoints.get(mode, [])
+    return [str(ep) for ep in endpoints]
+
+
 def exposure(cfg: Any) -> list[str]:
     """Why sessions other than the intended ones could publish to a session with this config (empty: none).
 
-    An endpoint is closed when it is loopback, or TLS/QUIC with mutual TLS (a peer needs a certificate of the
-    configured CA); anything else (plain ``tcp/``, ``udp/``, TLS without client certificates) on a reachable
-    address lets whoever reaches it publish, unless access control restricts it.
+    An endpoint is closed when it is loopback, when it connects over TLS/QUIC with mutual TLS (to the peer it
+    dialled, whose certificate it checks), or when it listens with mutual TLS *and* access rules decide which
+    certificate may put what. Anything else lets whoever reaches it publish: plain ``tcp/`` or ``udp/`` on a
+    reachable address, TLS without client certificates, and a mutual-TLS listener without access rules (every
+    holder of a certificate from its CA). Multicast scouting (Zenoh's default) is open too: the session
+    connects to the peers it finds on the LAN. Access rules close everything (they decide who may put what).
     """
     if cfg is None:
         return ["Zenoh's default config (listening on every interface, multicast scouting on)"]
@@ -120,16 +163,22 @@ def exposure(cfg: Any) -> list[str]:
     acl = bool(_json(cfg, "access_control/enabled"))
     reasons = []
     for kind in ("listen", "connect"):
-        endpoints = _json(cfg, f"{kind}/endpoints") or []
-        if isinstance(endpoints, dict):
-            endpoints = endpoints.get(mode, [])
-        for ep in endpoints:
-            scheme = str(ep).split("/", 1)[0]
-            if _loopback(str(ep)) or (scheme in ("tls", "quic") and mtls):
+        verb = "listens on" if kind == "listen" else "connects to"
+        for ep in _endpoints(cfg, kind, mode):
+            scheme = ep.split("/", 1)[0]
+            if scheme in ("tls", "quic") and mtls:
+                if kind == "listen":
+                    reasons.append(
+                        f"{verb} {ep} with mutual TLS but no access-control rules: any holder of a certificate"
+                        " from its CA could command the car"
+                    )
                 continue
-            verb = "listens on" if kind == "listen" else "connects to"
+            if _loopback(ep):
+                continue
             how = "without client certificates" if scheme in ("tls", "quic") else "without TLS"
             reasons.append(f"{verb} {ep} {how}")
+    if _json(cfg, "scouting/multicast/enabled") is not False:
+        reasons.append("scouts by UDP multicast (it connects to the sessions it finds on the LAN)")
     if reasons and acl:
         return []  # the access rules decide who may publish what
     return reasons
@@ -140,10 +189,14 @@ class ZenohLink:
 
     Args:
         prefix: the key expression the channels live under, e.g. ``"cars/car1"`` (``<prefix>/<channel>``).
-        config: a ``zenoh.Config`` (see :func:`zenoh_config`), a config file path, or ``None`` for Zenoh's
-            defaults (peer mode, multicast scouting on: fine on a bench, not on a shared network).
-        session: an already open ``zenoh.Session`` to use instead (the link then never closes it).
+        config: a ``zenoh.Config`` (see :func:`zenoh_config`), a config file path, or ``None``: peer mode,
+            listening on 127.0.0.1 only (a free port), multicast scouting off. Whatever the config leaves unset
+            is filled in the same way (:func:`link_config`); listening beyond loopback is said explicitly.
+        session: an already open ``zenoh.Session`` to use instead (the link then never closes it, and takes its
+            owner's word for how open it is: no checks).
         rtt_window: how many recent round trips ``transit_s`` is estimated from.
+        insecure: let subscribers take the car's command channels even though others can publish to this
+            session (:attr:`exposure` is not empty); they then only warn. For an isolated bench network.
 
     The session opens in the constructor, so a wrong endpoint or certificate fails when the car is built, not
     on its first tick. Parts take the link with :meth:`acquire` and give it back with :meth:`release`; the
@@ -157,6 +210,7 @@ class ZenohLink:
         *,
         session: Any = None,
         rtt_window: int = 16,
+        insecure: bool = False,
     ) -> None:
         import zenoh
 
@@ -165,14 +219,16 @@ class ZenohLink:
             raise ZenohConfigError(f"ZenohLink: prefix must be a plain key expression like 'cars/car1', got {prefix!r}")
         self.prefix = prefix
         self.now: Callable[[], float] = time.monotonic
+        self.insecure = bool(insecure)
         self._owned = session is None
+        #: the config the session was opened with (``None`` for a session given to the link)
+        self.config: Any = None
         if session is None:
-            if isinstance(config, str | Path):
-                config = zenoh_config(config)
+            self.config = config = link_config(config)
             #: why others than the intended peers could publish to this session (``[]``: nobody can)
             self.exposure = exposure(config)
             try:
-                session = zenoh.open(config if config is not None else zenoh.Config())
+                session = zenoh.open(config)
             except Exception as exc:
                 raise ZenohConfigError(f"ZenohLink {prefix!r}: cannot open a Zenoh session: {exc}") from None
         else:
@@ -196,6 +252,32 @@ class ZenohLink:
     def key(self, channel: str) -> str:
         """The key expression of a Memory channel: ``<prefix>/<channel>``."""
         return f"{self.prefix}/{channel.strip('/')}"
+
+    def guard_commands(self, channels: Iterable[str], who: str) -> None:
+        """Refuse (:class:`ZenohConfigError`) to let ``who`` take the car's command channels from a session that
+        others can publish to; warn for other channels, or for commands on an ``insecure=True`` link.
+
+        Why refuse rather than warn: a warning in a car's log does not stop a stranger's ``pilot/throttle``;
+        the car is then one put away from being steered by anyone who reaches the session.
+        """
+        if not self.exposure:
+            return
+        commands = [ch for ch in channels if ch in COMMAND_CHANNELS]
+        why = "; ".join(self.exposure)
+        if commands and not self.insecure:
+            raise ZenohConfigError(
+                f"{who}: refusing to take the command channels {commands} from the network: this session {why},"
+                " and it has no access-control rules, so others could steer the car. Use the configs of"
+                " `asyncdonkey zenoh-pair` (mutual TLS and access rules, docs/scale-out.md) or listen on"
+                " 127.0.0.1 only; on an isolated bench network, make the link with ZenohLink(..., insecure=True)."
+            )
+        logger.warning(
+            "%s: anyone who can reach this session can write these channels (it %s)%s. For commands, use the"
+            " configs of `asyncdonkey zenoh-pair` (docs/scale-out.md).",
+            who,
+            why,
+            " (insecure=True)" if commands else "",
+        )
 
     # -- round trip ------------------------------------------------------------------------------------
     def ping(self) -> None:

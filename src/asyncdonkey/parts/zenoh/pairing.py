@@ -8,7 +8,8 @@ written here close that:
 * **Access control on the car**, by the certificate's common name, default *deny*:
 
   - the pilot host (``CN=<pilot>``) may ``put``/``delete`` exactly the command keys
-    (``<prefix>/pilot/angle``, ``<prefix>/pilot/throttle`` by default) and the link's round-trip keys;
+    (``<prefix>/pilot/command``, the one-sample command, and ``<prefix>/pilot/angle``,
+    ``<prefix>/pilot/throttle`` by default) and the link's round-trip keys;
   - every authenticated session (the pilot, a fleet view given a certificate with ``--view``) may declare
     subscribers and receive what the car publishes (telemetry, camera, status);
   - nothing else comes in: a fleet view's put on a command key is dropped by the car's Zenoh runtime before it
@@ -31,9 +32,27 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PairFiles", "car_acl", "make_pair"]
+__all__ = ["COMMAND_CHANNELS", "DEFAULT_COMMANDS", "PILOT_COMMAND", "PairFiles", "car_acl", "make_pair"]
 
-DEFAULT_COMMANDS = ("pilot/angle", "pilot/throttle")
+#: the key of the remote pilot's command: angle and throttle in one sample (``ZenohPublisher(..., group=)``)
+PILOT_COMMAND = "pilot/command"
+#: the channels that move a Donkeycar car (and the pilot's one-sample command): a subscriber that takes any of
+#: them from the network needs a session only the intended pilot can publish to (``ZenohLink.guard_commands``)
+COMMAND_CHANNELS = frozenset(
+    {
+        "user/angle",
+        "user/throttle",
+        "pilot/angle",
+        "pilot/throttle",
+        "angle",
+        "throttle",
+        "user/mode",
+        "recording",
+        PILOT_COMMAND,
+    }
+)
+#: the keys the paired pilot may put by default: the one-sample command, and the two channels it replaces
+DEFAULT_COMMANDS = (PILOT_COMMAND, "pilot/angle", "pilot/throttle")
 
 
 @dataclass

@@ -3,9 +3,12 @@
 Wiring, on the car (camera out, commands in)::
 
     link = ZenohLink("cars/car1", zenoh_config("car.json5"))
-    v.add(ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"]), outputs=["pilot/angle", "pilot/throttle"])
+    commands = ZenohSubscriber(link, ["pilot/angle", "pilot/throttle"], group="pilot/command")
+    v.add(commands, outputs=["pilot/angle", "pilot/throttle"])
     cam_out = ZenohPublisher(link, ["cam/image_array"], jpeg={"cam/image_array": 85})
     v.add(cam_out, inputs=cam_out.inputs)            # the channels and their "@age" inputs
+
+and on the pilot, ``ZenohPublisher(link, ["pilot/angle", "pilot/throttle"], group="pilot/command")``.
 
 **Nothing blocks a tick, nothing queues.** Zenoh calls the subscriber back on its own threads; the callback
 decodes the payload there and swaps it into a one-slot cell per channel under a lock. ``run()`` takes the
@@ -13,6 +16,17 @@ newest value of every channel without waiting. A value that is overwritten befor
 in ``dropped``; a sample older (by sequence number) than the one already held is discarded and counted in
 ``out_of_order``; a sample whose age on arrival exceeds ``late_after_s`` is counted in ``late`` (and still
 used: it is the newest there is); gaps in sequence numbers are counted in ``lost``.
+
+**One sample per command.** With ``group=`` the publisher sends its channels together as one sample on
+``<prefix>/<group>`` (:func:`.codec.encode_group`) and the subscriber outputs them together with that sample's
+one origin: a steering angle is never applied with the previous command's throttle, and a command is never
+aged by the half that came first.
+
+**Only good values.** Every value passes the car's channel contracts (:class:`asyncdonkey.contracts.Gate`)
+before it is stored: ``NaN``, ``inf``, a string, a list, a number out of range, a DELETE sample, an empty
+payload, a payload that does not decode, a group with a bad half are *refused*: not stored, counted per channel
+and reason (``refused``), logged rate-limited. The channel keeps its last good value and that value keeps
+ageing, so the stale-command failsafe decides what the car does, never the bad value.
 
 **Pushing.** A subscriber of one channel is also a push source (``subscribe(callback)``, as the cameras): when
 its channel triggers a pipelined part (``trigger="cam/image_array"``), the drive loop writes each value into
@@ -46,9 +60,10 @@ from typing import Any
 import numpy as np
 
 from ...clock import get_clock
+from ...contracts import REFUSED, Contract, Contracts, Gate, Kind
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
-from .codec import CodecError, decode, encode, pack_attachment, unpack_attachment
+from .codec import NDARRAY, CodecError, decode, decode_group, encode, encode_group, pack_attachment, unpack_attachment
 from .link import INTERNAL, ZenohLink
 
 __all__ = ["ZenohPublisher", "ZenohSubscriber", "covering_key"]
@@ -69,12 +84,16 @@ class ZenohPublisher:
         max_interval_s: the longest silence per channel with ``on_change`` (keep it well under the receiver's
             failsafe window).
         jpeg: channel → JPEG quality (1-100) for image channels to send as JPEG instead of raw arrays.
+        group: send all the channels together as one sample on ``<prefix>/<group>`` (e.g. ``"pilot/command"``
+            for ``pilot/angle, pilot/throttle``), with the oldest of their ages, so a receiver taking the same
+            group applies them together (see :mod:`.codec` for the layout). A tick where one of them is ``None``
+            sends nothing (counted in ``incomplete``): half a command is not a command.
 
     Add it with ``inputs=publisher.inputs``: the channels, then ``"<channel>@age"`` for each, so every sample
     carries the age of the sensing behind it (added with the channels alone, values count as sensed when sent).
     A value whose age is unknown (``inf``: no sensing behind it, e.g. computed from channels never written) is
     not sent: sent with any finite age it would look fresh to the receiver. ``sent``, ``skipped`` (unchanged),
-    ``unaged`` (no sensing behind them) and ``errors`` count samples.
+    ``unaged`` (no sensing behind them), ``incomplete`` and ``errors`` count samples.
     """
 
     def __init__(
@@ -85,6 +104,7 @@ class ZenohPublisher:
         on_change: bool = False,
         max_interval_s: float = 0.1,
         jpeg: Mapping[str, int] | None = None,
+        group: str | None = None,
     ) -> None:
         import zenoh
 
@@ -98,24 +118,28 @@ class ZenohPublisher:
                 raise ValueError(f"ZenohPublisher: jpeg channel {ch!r} is not one of the channels {list(channels)!r}")
             if not (isinstance(q, int) and 1 <= q <= 100):
                 raise ValueError(f"ZenohPublisher: JPEG quality for {ch!r} must be an int 1-100, got {q!r}")
+        self.group = _group_name(group, channels, "ZenohPublisher")
+        if self.group is not None and jpeg:
+            raise ValueError("ZenohPublisher: a group carries JSON scalars, not JPEG images")
         self.link = link.acquire()
         self.channels = tuple(channels)
         self.on_change = on_change
         self.max_interval_s = float(max_interval_s)
         self.jpeg = jpeg
+        keys = [self.group] if self.group is not None else self.channels
         self._pubs = [
-            link.session.declare_publisher(link.key(ch), congestion_control=zenoh.CongestionControl.DROP)
-            for ch in self.channels
+            link.session.declare_publisher(link.key(k), congestion_control=zenoh.CongestionControl.DROP) for k in keys
         ]
-        self._seq = [0] * len(self.channels)
+        self._seq = [0] * len(keys)
         #: drawn at start, sent with every sample: receivers tell a restarted publisher from late samples
         self.source = random.getrandbits(63) + 1
-        self._last: list[Any] = [None] * len(self.channels)
-        self._last_t = [-math.inf] * len(self.channels)
+        self._last: list[Any] = [None] * len(keys)
+        self._last_t = [-math.inf] * len(keys)
         self._log = LogThrottle(5.0)
         self.sent = 0
         self.skipped = 0
         self.unaged = 0
+        self.incomplete = 0
         self.errors = 0
         self.bytes_sent = 0
 
@@ -128,36 +152,77 @@ class ZenohPublisher:
         n = len(self.channels)
         ages = values[n:] if len(values) == 2 * n else (0.0,) * n
         now = _now()
+        if self.group is not None:
+            self._send_group(values[:n], ages, now)
+            return
         for i in range(n):
             value = values[i]
-            if value is None:
+            if value is None or self._unchanged(i, value, now):
                 continue
-            if self.on_change and now - self._last_t[i] < self.max_interval_s and _same(value, self._last[i]):
-                self.skipped += 1
-                continue
-            age = ages[i]
             ch = self.channels[i]
-            if age is None or not math.isfinite(age):
-                self.unaged += 1
-                if self._log.allow(("unaged", ch), now):
-                    logger.warning("ZenohPublisher: %r has no sensing behind it (age %r): not sent", ch, age)
+            age = self._age(ages[i], ch, now)
+            if age is None:
                 continue
-            age = float(age) if age > 0 else 0.0
             try:
                 enc = encode(value, ch, jpeg_quality=self.jpeg.get(ch))
             except CodecError as exc:
-                self.errors += 1
-                if self._log.allow(ch, now):
-                    logger.warning("ZenohPublisher: %s (not sent)", exc)
+                self._error(ch, exc, now)
                 continue
-            self._seq[i] += 1
-            self._pubs[i].put(
-                enc.payload, encoding=enc.encoding, attachment=pack_attachment(age, self._seq[i], self.source)
-            )
-            self._last[i] = value
-            self._last_t[i] = now
-            self.sent += 1
-            self.bytes_sent += len(enc.payload)
+            self._put(i, enc.payload, enc.encoding, age, value, now)
+
+    def _send_group(self, values: Sequence[Any], ages: Sequence[Any], now: float) -> None:
+        """All the channels as one sample, aged by the oldest of them (never younger than any half)."""
+        if any(v is None for v in values):
+            self.incomplete += 1
+            return
+        values = tuple(values)
+        if self._unchanged(0, values, now):
+            return
+        group = self.group or ""
+        age = self._age(max(ages, key=lambda a: math.inf if a is None or a != a else a), group, now)
+        if age is None:
+            return
+        try:
+            enc = encode_group(dict(zip(self.channels, values, strict=True)), group)
+        except CodecError as exc:
+            self._error(group, exc, now)
+            return
+        self._put(0, enc.payload, enc.encoding, age, values, now)
+
+    def _unchanged(self, i: int, value: Any, now: float) -> bool:
+        """With ``on_change``: ``value`` is the one last sent and the keepalive is not due (counted)."""
+        if not self.on_change or now - self._last_t[i] >= self.max_interval_s:
+            return False
+        last = self._last[i]
+        if isinstance(value, tuple):
+            same = isinstance(last, tuple) and len(last) == len(value) and all(map(_same, value, last))
+        else:
+            same = _same(value, last)
+        if same:
+            self.skipped += 1
+        return same
+
+    def _age(self, age: Any, name: str, now: float) -> float | None:
+        """The age to send, or ``None`` (counted, logged) when nothing sensed is behind the value."""
+        if age is None or not math.isfinite(age):
+            self.unaged += 1
+            if self._log.allow(("unaged", name), now):
+                logger.warning("ZenohPublisher: %r has no sensing behind it (age %r): not sent", name, age)
+            return None
+        return float(age) if age > 0 else 0.0
+
+    def _error(self, name: str, exc: CodecError, now: float) -> None:
+        self.errors += 1
+        if self._log.allow(name, now):
+            logger.warning("ZenohPublisher: %s (not sent)", exc)
+
+    def _put(self, i: int, payload: bytes, encoding: str, age: float, value: Any, now: float) -> None:
+        self._seq[i] += 1
+        self._pubs[i].put(payload, encoding=encoding, attachment=pack_attachment(age, self._seq[i], self.source))
+        self._last[i] = value
+        self._last_t[i] = now
+        self.sent += 1
+        self.bytes_sent += len(payload)
 
     def shutdown(self) -> None:
         for p in self._pubs:
@@ -169,7 +234,18 @@ class ZenohPublisher:
         self.link.release()
 
     def __repr__(self) -> str:
-        return f"ZenohPublisher({self.link.prefix!r}, {list(self.channels)!r})"
+        group = f", group={self.group!r}" if self.group is not None else ""
+        return f"ZenohPublisher({self.link.prefix!r}, {list(self.channels)!r}{group})"
+
+
+def _group_name(group: str | None, channels: Sequence[str], who: str) -> str | None:
+    """The group's channel name (its key under the prefix), checked: a plain name that is none of the channels."""
+    if group is None:
+        return None
+    name = str(group).strip("/")
+    if not name or any(c in name for c in "*$?#") or name in channels:
+        raise ValueError(f"{who}: group must be a plain channel name other than the channels, got {group!r}")
+    return name
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -187,8 +263,6 @@ def _same(a: Any, b: Any) -> bool:
 class _Held:
     value: Any
     origin: float
-    seq: int
-    source: int
     fresh: bool  # not yet taken by run()
 
 
@@ -204,12 +278,22 @@ class ZenohSubscriber:
             ``"<prefix>/**"`` to audit every key of the car).
         on_arrival: called with the channel name on Zenoh's thread after each value is stored (to wake an
             event-driven consumer; it must be quick and must not block).
+        group: take the channels together from one sample on ``<prefix>/<group>``, as a
+            ``ZenohPublisher(..., group=)`` sends them: all of them stored at once with that sample's origin,
+            or none (a group with one bad value is refused whole).
+        contracts: the channel contracts values are checked against (default: the car's, given by
+            ``Vehicle.add`` through :meth:`use_contracts`; before that, or outside a vehicle,
+            :class:`asyncdonkey.contracts.Contracts` defaults). Given here, they are kept.
+
+    A subscriber that takes any of the car's command channels (``pairing.COMMAND_CHANNELS``) refuses to start
+    on a session that others can publish to (:meth:`.ZenohLink.guard_commands`): :class:`.ZenohConfigError`.
 
     Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them, when
     nothing is subscribed to the pushes),
-    ``out_of_order`` (numbered below the newest: discarded), ``late``, ``lost`` (sequence gaps), ``restarts``
-    (a sample from a new source, e.g. a restarted pilot: taken), ``unexpected`` (keys not configured, or
-    samples without our attachment), ``malformed`` (payloads that did not decode).
+    ``out_of_order`` (numbered below the newest: discarded), ``late``, ``lost`` (sequence gaps; a refused
+    sample is not lost), ``restarts`` (a sample from a new source, e.g. a restarted pilot: taken),
+    ``unexpected`` (keys not configured, or samples without our attachment), ``refused`` (values not stored,
+    per channel and reason, see :attr:`refused`), of which ``malformed`` (payloads that did not decode).
     """
 
     def __init__(
@@ -221,19 +305,32 @@ class ZenohSubscriber:
         ping_every_s: float = 0.5,
         key_expr: str | None = None,
         on_arrival: Callable[[str], None] | None = None,
+        group: str | None = None,
+        contracts: Contracts | None = None,
     ) -> None:
         import zenoh
 
         if isinstance(channels, str) or not channels:
             raise ValueError(f"ZenohSubscriber: channels must be a non-empty list of names, got {channels!r}")
+        self.group = _group_name(group, channels, "ZenohSubscriber")
+        link.guard_commands([*channels, *([self.group] if self.group else [])], f"ZenohSubscriber {list(channels)}")
         self.link = link.acquire()
         self.channels = tuple(channels)
         self.late_after_s = float(late_after_s)
         self.ping_every_s = float(ping_every_s)
-        self._index = {link.key(ch): i for i, ch in enumerate(self.channels)}
-        self._held: list[_Held | None] = [None] * len(self.channels)
+        #: what each cell holds: one channel each, or the whole group in one
+        self._cells: tuple[str, ...] = (self.group,) if self.group is not None else self.channels
+        self._index = {link.key(name): i for i, name in enumerate(self._cells)}
+        self._held: list[_Held | None] = [None] * len(self._cells)
+        #: (source, seq) of the newest in-order sample seen per cell, stored or refused: a refusal is no gap
+        self._seen: list[tuple[int, int] | None] = [None] * len(self._cells)
         self._lock = threading.Lock()
+        self._gate_lock = threading.Lock()
         self._log = LogThrottle(5.0)
+        self._own_contracts = contracts is not None
+        self.gate: Gate = (contracts if contracts is not None else Contracts()).gate("ZenohSubscriber")
+        self._caps = self._payload_caps()
+        self._delete = zenoh.SampleKind.DELETE
         self._origin: float | None = None
         self.received = 0
         self.dropped = 0
@@ -246,16 +343,35 @@ class ZenohSubscriber:
         self.on_arrival = on_arrival
         self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
-        if link.exposure:
-            logger.warning(
-                "ZenohSubscriber %s: anyone who can reach this session can write these channels (it %s). "
-                "For commands, use the configs of `asyncdonkey zenoh-pair` (docs/scale-out.md).",
-                list(self.channels),
-                "; ".join(link.exposure),
-            )
         self._sub = link.session.declare_subscriber(
             self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
         )
+
+    # -- contracts -------------------------------------------------------------------------------------
+    def use_contracts(self, contracts: Contracts) -> None:
+        """Check values against the car's contracts (``Vehicle.add`` calls this), unless given ``contracts=``.
+        Refusals counted so far are kept."""
+        if self._own_contracts:
+            return
+        gate = contracts.gate("ZenohSubscriber")
+        with self._gate_lock:
+            gate.refused.update(self.gate.refused)
+            self.gate = gate
+            self._caps = self._payload_caps()
+
+    def _payload_caps(self) -> tuple[int | None, ...]:
+        """Per cell, the largest payload worth decoding (``None``: no limit): a number's JSON is a few dozen
+        bytes, so a megabyte sent as a throttle is refused before it costs a decode on Zenoh's thread."""
+        caps = [_payload_cap(self.gate.contracts.get(ch)) for ch in self.channels]
+        if self.group is None:
+            return tuple(caps)
+        return (sum(_SCALAR_CAP if c is None else c for c in caps),)
+
+    @property
+    def refused(self) -> dict[str, dict[str, int]]:
+        """Values refused, as ``{channel: {reason: count}}`` (a group's sample-wide refusals under its name)."""
+        with self._gate_lock:
+            return self.gate.counts()
 
     # -- Zenoh's threads -------------------------------------------------------------------------------
     def _on_sample(self, sample: Any) -> None:
@@ -266,46 +382,91 @@ class ZenohSubscriber:
                 self._reject(key, "is not one of the configured channels")
             return
         meta = unpack_attachment(_bytes(sample.attachment))
-        if meta is None:
+        delete = sample.kind == self._delete
+        if meta is None and not delete:
             self._reject(key, "carries no age attachment (not an asyncdonkey publisher)")
             return
-        age, seq, source = meta
-        try:
-            value = decode(sample.payload.to_bytes(), str(sample.encoding), key)
-        except CodecError as exc:
-            with self._lock:
-                self.malformed += 1
-            if self._log.allow("malformed", self.link.now()):
-                logger.warning("ZenohSubscriber: %s (ignored)", exc)
+        if meta is not None and not self._in_order(i, meta[1], meta[2]):
             return
         now = self.link.now()
-        age_here = age + self.link.transit_s
+        if delete:  # the absence of a value, whoever sends it
+            self._refuse(i, "empty", "a DELETE sample is not a value", now)
+            return
+        value = self._value(i, sample, now)
+        if value is not REFUSED and meta is not None:
+            self._store(i, value, meta, now)
+
+    def _in_order(self, i: int, seq: int, source: int) -> bool:
+        """Sequence bookkeeping for every numbered sample, stored or refused: ``False`` for an old one."""
+        with self._lock:
+            seen = self._seen[i]
+            if seen is not None:
+                last_source, last_seq = seen
+                if source != last_source:
+                    self.restarts += 1  # another sender, or the same one restarted: its numbering starts over
+                elif seq <= last_seq:
+                    self.out_of_order += 1
+                    return False
+                elif seq > last_seq + 1:
+                    self.lost += seq - last_seq - 1
+            self._seen[i] = (source, seq)
+        return True
+
+    def _value(self, i: int, sample: Any, now: float) -> Any:
+        """The sample's value as it may be stored (a group: the tuple of its values), or :data:`REFUSED`."""
+        payload = sample.payload.to_bytes()
+        encoding = str(sample.encoding)
+        if not payload and not encoding.startswith(NDARRAY):  # a zero-size array has no bytes; nothing else
+            return self._refuse(i, "empty", "an empty payload is not a value", now)
+        cap = self._caps[i]
+        if cap is not None and len(payload) > cap:
+            return self._refuse(i, "size", f"a payload of {len(payload)} bytes, more than {cap}", now)
+        key = self.link.key(self._cells[i])
+        try:
+            if self.group is not None:
+                values = decode_group(payload, encoding, self.channels, key)
+            else:
+                values = (decode(payload, encoding, key),)
+        except CodecError as exc:
+            with self._gate_lock:
+                self.malformed += 1
+            return self._refuse(i, "encoding", str(exc), now)
+        with self._gate_lock:
+            admitted = tuple(self.gate.admit(ch, v, now) for ch, v in zip(self._channels_of(i), values, strict=True))
+        if any(v is REFUSED for v in admitted):
+            return REFUSED  # a command with a bad half is no command: neither half is stored
+        return admitted if self.group is not None else admitted[0]
+
+    def _channels_of(self, i: int) -> tuple[str, ...]:
+        return self.channels if self.group is not None else (self.channels[i],)
+
+    def _refuse(self, i: int, reason: str, detail: str, now: float) -> Any:
+        key = self.link.key(self._cells[i])
+        if key not in detail:
+            detail = f"{detail} (on {key!r})"
+        with self._gate_lock:
+            return self.gate.refuse(self._cells[i], reason, detail, now)
+
+    def _store(self, i: int, value: Any, meta: tuple[float, int, int], now: float) -> None:
+        age_here = meta[0] + self.link.transit_s
+        origin = now - age_here
         with self._lock:
             held = self._held[i]
-            if held is not None:
-                if source != held.source:
-                    self.restarts += 1  # another sender, or the same one restarted: its numbering starts over
-                elif seq <= held.seq:
-                    self.out_of_order += 1
-                    return
-                elif seq > held.seq + 1:
-                    self.lost += seq - held.seq - 1
-                if held.fresh and not self._pushes:
-                    self.dropped += 1
-            origin = now - age_here
-            self._held[i] = _Held(value, origin, seq, source, True)
+            if held is not None and held.fresh and not self._pushes:
+                self.dropped += 1
+            self._held[i] = _Held(value, origin, True)
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
         if self._pushes:
             if len(self.channels) == 1:
-                pushed, pushed_origin = value, origin
+                pushed, pushed_origin = (value[0] if self.group is not None else value), origin
             else:  # every channel's newest value, as run() would return them, with the oldest origin
                 pushed, pushed_origin = self._snapshot()
             for push in self._pushes:
                 push(pushed, pushed_origin)
         if self.on_arrival is not None:
-            self.on_arrival(self.channels[i])
+            self.on_arrival(self._cells[i])
 
     def _reject(self, key: str, why: str) -> None:
         with self._lock:
@@ -355,6 +516,8 @@ class ZenohSubscriber:
                     held.fresh = False
                 out.append(held.value)
                 oldest = min(oldest, held.origin)
+        if self.group is not None:  # one cell holding every channel's value
+            out = list(out[0]) if out[0] is not None else [None] * len(self.channels)
         return (out[0] if len(out) == 1 else tuple(out)), (oldest if math.isfinite(oldest) else None)
 
     def output_origin(self) -> float | None:
@@ -365,7 +528,8 @@ class ZenohSubscriber:
         """Channel → age of its held value now (s); ``inf`` for a channel that never arrived."""
         now = self.link.now()
         with self._lock:
-            return {ch: (now - h.origin if h else math.inf) for ch, h in zip(self.channels, self._held, strict=True)}
+            held = [self._held[0]] * len(self.channels) if self.group is not None else self._held
+            return {ch: (now - h.origin if h else math.inf) for ch, h in zip(self.channels, held, strict=True)}
 
     async def update(self) -> None:
         """Measure the round trip to the other sessions on the prefix every ``ping_every_s`` (for the ages)."""
@@ -379,6 +543,9 @@ class ZenohSubscriber:
                 await every.next()
 
     def counters(self) -> dict[str, int]:
+        with self._gate_lock:
+            refused = self.gate.total_refused
+            malformed = self.malformed
         with self._lock:
             return {
                 "received": self.received,
@@ -387,7 +554,8 @@ class ZenohSubscriber:
                 "late": self.late,
                 "lost": self.lost,
                 "unexpected": self.unexpected,
-                "malformed": self.malformed,
+                "refused": refused,
+                "malformed": malformed,
                 "restarts": self.restarts,
             }
 
@@ -399,7 +567,25 @@ class ZenohSubscriber:
         self.link.release()
 
     def __repr__(self) -> str:
-        return f"ZenohSubscriber({self.link.prefix!r}, {list(self.channels)!r})"
+        group = f", group={self.group!r}" if self.group is not None else ""
+        return f"ZenohSubscriber({self.link.prefix!r}, {list(self.channels)!r}{group})"
+
+
+#: the largest payload decoded for a scalar channel (a number, a bool, a mode): far more than any JSON of one
+_SCALAR_CAP = 1024
+
+
+def _payload_cap(contract: Contract | None) -> int | None:
+    """The largest payload a value of this contract can arrive in (``None``: no contract, no limit)."""
+    if contract is None:
+        return None
+    if contract.kind in (Kind.FLOAT, Kind.INT, Kind.BOOL, Kind.ENUM):
+        return _SCALAR_CAP
+    if contract.max_len is None:
+        return None
+    if contract.kind is Kind.ARRAY:
+        return contract.max_len * np.dtype(contract.dtype).itemsize
+    return contract.max_len
 
 
 def _now() -> float:

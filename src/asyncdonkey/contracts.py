@@ -108,6 +108,13 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else f"{text[:37]}..."
 
 
+def _typed(value: Any) -> str:
+    """A value with its type, for "expected X, got Y" (containers already name theirs)."""
+    if isinstance(value, np.ndarray | bytes | bytearray | memoryview | list | tuple | dict | set):
+        return _short(value)
+    return f"{type(value).__name__} {_short(value)}"
+
+
 #: a check returns the value to store (normalised: an int made a float, a numpy scalar a Python one) or raises
 Check = Callable[[Any], Any]
 
@@ -215,7 +222,7 @@ def _compile(c: Contract) -> Check:
             if v.__class__ is float and lo <= v <= hi:
                 return v
             if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise _fail("type", f"expected a number, got {type(v).__name__} {_short(v)}")
+                raise _fail("type", f"expected a number, got {_typed(v)}")
             try:
                 f = float(v)
             except (OverflowError, ValueError):
@@ -234,7 +241,7 @@ def _compile(c: Contract) -> Check:
 
         def check_int(v: Any) -> Any:
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise _fail("type", f"expected an integer, got {type(v).__name__} {_short(v)}")
+                raise _fail("type", f"expected an integer, got {_typed(v)}")
             i = int(v)
             if (ilo is not None and i < ilo) or (ihi is not None and i > ihi):
                 raise _fail("range", f"{_short(v)} is outside [{ilo}, {ihi}]")
@@ -248,7 +255,7 @@ def _compile(c: Contract) -> Check:
                 return v
             if isinstance(v, np.bool_):
                 return bool(v)
-            raise _fail("type", f"expected true or false, got {type(v).__name__} {_short(v)}")
+            raise _fail("type", f"expected true or false, got {_typed(v)}")
 
         return check_bool
     if k is Kind.ENUM:
@@ -258,7 +265,7 @@ def _compile(c: Contract) -> Check:
             if v.__class__ is str and v in choices:
                 return v
             if not isinstance(v, str):
-                raise _fail("type", f"expected one of {sorted(choices)}, got {type(v).__name__} {_short(v)}")
+                raise _fail("type", f"expected one of {sorted(choices)}, got {_typed(v)}")
             raise _fail("choice", f"{_short(v)} is not one of {sorted(choices)}")
 
         return check_enum
@@ -268,7 +275,7 @@ def _compile(c: Contract) -> Check:
 
         def check_array(v: Any) -> Any:
             if not isinstance(v, np.ndarray):
-                raise _fail("type", f"expected a {dtype.name} array, got {type(v).__name__} {_short(v)}")
+                raise _fail("type", f"expected a {dtype.name} array, got {_typed(v)}")
             if v.dtype != dtype:
                 raise _fail("dtype", f"expected dtype {dtype.name}, got {v.dtype}")
             if shape is not None and (
@@ -289,7 +296,7 @@ def _compile(c: Contract) -> Check:
         if isinstance(v, bytearray | memoryview):
             v = bytes(v)
         if not isinstance(v, bytes):
-            raise _fail("type", f"expected bytes, got {type(v).__name__} {_short(v)}")
+            raise _fail("type", f"expected bytes, got {_typed(v)}")
         if len(v) > blen:
             raise _fail("size", f"{len(v)} bytes, more than {blen}")
         if jpeg and not (v[:2] == b"\xff\xd8" and v[-2:] == b"\xff\xd9"):

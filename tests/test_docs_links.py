@@ -108,3 +108,27 @@ def test_make_bench_has_a_table_to_replace() -> None:
     begin, end = text.find("<!-- benchmarks:begin -->"), text.find("<!-- benchmarks:end -->")
     assert 0 <= begin < end, "docs/benchmarks.md has lost its benchmarks:begin / benchmarks:end markers"
     assert "| benchmark | figure | asyncdonkey |" in text[begin:end]
+
+
+TEST_REF = re.compile(r"`((?:tests/[\w./-]+\.py)?)::(\w+)`")
+
+
+def test_every_test_docs_safety_names_exists():
+    """docs/safety.md is the list of faults with the test that proves each: a renamed or removed test must not
+    leave a row pointing at nothing. ``path::name`` names a test; a bare ``::name`` is in the row's last path."""
+    text = (ROOT / "docs" / "safety.md").read_text()
+    missing = []
+    checked = 0
+    for line in text.splitlines():
+        current = None
+        for path, name in TEST_REF.findall(line):
+            checked += 1
+            current = path or current
+            if current is None:
+                missing.append(f"::{name} (no file before it on its line)")
+                continue
+            source = (ROOT / current).read_text() if (ROOT / current).is_file() else ""
+            if not re.search(rf"^\s*(async\s+)?def {name}\(", source, re.MULTILINE):
+                missing.append(f"{current}::{name}")
+    assert not missing, missing
+    assert checked > 40  # the rows are read at all

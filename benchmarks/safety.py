@@ -18,6 +18,9 @@
   regular expression holding the car's GIL in its pilot, ms from the hang's start to the stopped pulse (the
   throttle's deadline falls at most 250 ms after the start: its last command came before). And what the car
   pays for it: per tick the heartbeat (one store, one load), per command the deadline (two stores), in ns.
+* **Checked mode**: nanoseconds a part's output store takes when checked against its channel's contract (the test
+  default, ``Vehicle(checked=True)``) against the same store unchecked (the car's default), per checked output:
+  a float command (``throttle``), a 120x160x3 camera frame, and the drive-mode selector's two commands.
 * **Simulated car** (``examples/car.py``, real time, uvloop): sensing-to-actuation latency of the simulated car
   (frame age at the tick + pilot inference + the write), p50/p99/max, from the drive's report.
 """
@@ -37,9 +40,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "examples"))
 sys.path.insert(0, str(ROOT / "tests" / "safety"))
 
-from asyncdonkey import Memory, Vehicle  # noqa: E402
+from asyncdonkey import Contracts, Memory, Vehicle  # noqa: E402
 from asyncdonkey.loop import run_blocking  # noqa: E402
-from asyncdonkey.plan import build_entry  # noqa: E402
+from asyncdonkey.plan import build_entry, checked_store  # noqa: E402
 from machine_info import describe  # noqa: E402
 
 WINDOW_S = 0.25
@@ -259,6 +262,45 @@ def provenance(n: int) -> dict:
     return res
 
 
+def checked_mode(n: int) -> dict:
+    """ns per store checked against the contracts vs unchecked, and the difference per checked output."""
+    mem = Memory()
+    for k in ("x", "user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"):
+        mem.set(k, 0.3, origin=0.5)
+    contracts = Contracts()
+
+    class Part:
+        def run(self, *args):
+            return None
+
+    def offload(fn):
+        return fn
+
+    def entry(name: str, ins: list[str], outs: list[str]):
+        return build_entry(mem, Part(), name, ins, outs, False, None, False, "stop", 2.0, None, None, offload)
+
+    frame = np.zeros((120, 160, 3), np.uint8)
+    cases = (
+        ("float_command", entry("pilot", ["x"], ["throttle"]), 0.25 + 0.0, 1),
+        ("image_120x160x3", entry("camera", [], ["cam/image_array"]), frame, 1),
+        ("selector_2_commands", entry("drive_mode", ["user/mode", "user/angle"], ["angle", "throttle"]), (0.1, 0.2), 2),
+    )
+    res = {}
+    for label, e, value, outputs in cases:
+        checked = checked_store(e.store, e.name, e.outputs, contracts)
+        assert checked is not e.store
+        args = e.args()
+        ours = min(_store_ns(checked, value, args, n) for _ in range(5))
+        base = min(_store_ns(e.store, value, args, n) for _ in range(5))
+        res[label] = {
+            "checked_ns": ours,
+            "unchecked_ns": base,
+            "outputs": outputs,
+            "added_per_output_ns": (ours - base) / outputs,
+        }
+    return res
+
+
 def loop_overhead(ticks: int) -> dict:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import loop as loop_bench
@@ -297,6 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         "watchdog": watchdog(3 if args.quick else 10),
         "safety_process": safety_process(3 if args.quick else 10, 20_000 if args.quick else 200_000),
         "provenance": provenance(20_000 if args.quick else 200_000),
+        "checked_mode": checked_mode(20_000 if args.quick else 200_000),
         "overhead": loop_overhead(5_000 if args.quick else 20_000),
         "sim_car": sim_car_latency(5.0 if args.quick else 15.0),
     }
@@ -321,6 +364,11 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"provenance, {label}: store {p['with_origins_ns']:.0f} ns with origins vs {p['plain_ns']:.0f} ns plain "
             f"(+{p['added_ns']:.0f} ns)"
+        )
+    for label, c in results["checked_mode"].items():
+        print(
+            f"checked mode, {label}: store {c['checked_ns']:.0f} ns checked vs {c['unchecked_ns']:.0f} ns unchecked "
+            f"(+{c['added_per_output_ns']:.0f} ns per checked output)"
         )
     ov = results["overhead"]
     dk = f", Donkeycar {ov['donkeycar_us']:.2f} µs" if "donkeycar_us" in ov else ""

@@ -24,12 +24,13 @@ from .clock import _TICK_GRID, SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, Tic
 from .errors import PartError
 from .memory import Memory
 from .pipeline import Reaction, after_store, build_pipelines
-from .plan import Background, Entry
+from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
 from .ratelimit import LogThrottle
 from .signals import PartInterrupted
 
 if TYPE_CHECKING:
+    from .contracts import Contracts
     from .loop import DriveReport
     from .safety.process import SafetyProcess
     from .watchdog import Watchdog
@@ -108,6 +109,8 @@ class Drive:
         # pipelined parts (asyncdonkey.pipeline): the tick calls their kickers in their place
         self.push_sources: list[tuple[Entry, Any, Reaction | None]] = []
         self._unsubscribe: list[Any] = []
+        #: checked mode: each wrapped entry's own stores, put back when the drive ends (:meth:`uncheck_outputs`)
+        self._plain_stores: list[tuple[Entry, Any, Any]] = []
         self.tick_entries, self.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
         self.table = table = TickTable(len(self.tick_entries), 1.0 / report.rate_hz, profiler.window)
@@ -127,6 +130,30 @@ class Drive:
                 max_workers=4, thread_name_prefix="asyncdonkey-offload"
             )
         return self.executor
+
+    # ------------------------------------------------------------------------------------ checked mode
+    def check_outputs(self, contracts: Contracts) -> int:
+        """Checked mode for this drive: every entry whose outputs have contracts stores through a check
+        (:func:`~asyncdonkey.plan.checked_store`); returns how many entries are checked.
+
+        Decided once, here, so the tick stays as it is: a checked entry simply has another ``store``. The
+        entries belong to the vehicle and outlive the drive, so their own stores are kept and put back by
+        :meth:`uncheck_outputs`.
+        """
+        for e in self.entries:
+            store = checked_store(e.store, e.name, e.outputs, contracts)
+            fixed = checked_store(e.store_fixed, e.name, e.outputs, contracts)
+            if store is e.store and fixed is e.store_fixed:
+                continue
+            self._plain_stores.append((e, e.store, e.store_fixed))
+            e.store, e.store_fixed = store, fixed
+        return len(self._plain_stores)
+
+    def uncheck_outputs(self) -> None:
+        """Give the entries their own stores back (the next drive decides again)."""
+        for e, store, fixed in self._plain_stores:
+            e.store, e.store_fixed = store, fixed
+        self._plain_stores.clear()
 
     # ---------------------------------------------------------------------------------------- stopping
     def request_stop(self, reason: str = "stop()") -> None:

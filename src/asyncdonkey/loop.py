@@ -85,6 +85,8 @@ class DriveReport:
             wake-up lateness: what each tick spun at most), else ``None``. Precise mode's CPU is mostly this.
         precise_sleeps: in precise mode, how many times each tick slept before its spin at the end of the drive
             (2 where the machine's wake-ups have a long tail, else 1), else ``None``.
+        checked: whether the drive ran in checked mode (every part output checked against its channel's
+            contract); ``checked_parts``: how many parts had an output with a contract to check.
     """
 
     loops: int = 0
@@ -108,6 +110,8 @@ class DriveReport:
     stop_reason: str = ""
     spin_window_ms: float | None = None
     precise_sleeps: int | None = None
+    checked: bool = False
+    checked_parts: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -127,6 +131,9 @@ class Vehicle:
 
     #: a sync part holding the loop thread longer than this is named in a warning when it returns
     block_report_s = 0.25
+    #: checked mode for vehicles that do not say (``checked=None``): off on the car; asyncdonkey's pytest plugin
+    #: turns it on for a test session (its ``asyncdonkey_checked`` ini option and marker turn it off)
+    checked_by_default: bool = False
 
     def __init__(
         self,
@@ -135,11 +142,18 @@ class Vehicle:
         profiler_window: int | None = None,
         safety_process: bool | None = None,
         contracts: Contracts | Mapping[str, Contract] | None = None,
+        checked: bool | None = None,
     ) -> None:
         #: what each channel's values may be (``asyncdonkey.contracts``): the Donkeycar defaults, then whatever is
         #: declared here, with :meth:`declare`, or by a part's ``contracts`` mapping when it is added. Boundary
         #: parts (network and web receivers) check what they admit against these.
         self.contracts = contracts if isinstance(contracts, Contracts) else Contracts(contracts)
+        if checked is not None and type(checked) is not bool:
+            raise ValueError(f"Vehicle: checked must be True, False or None, got {checked!r}")
+        #: checked mode (a test-time aid): every part output is checked against its channel's contract and a
+        #: value that breaks it is a ContractViolation naming the part, handled as that part's error (``on_error``)
+        #: and never stored. ``None``: :attr:`checked_by_default` when a drive starts; ``run(checked=)`` overrides
+        self.checked = checked
         #: the safety process (``asyncdonkey.safety``): ``None`` starts it on a real loop whenever an actuator
         #: has an output it can reach (a PCA9685 channel) and drives on without it, logging why, if it cannot
         #: start; ``True`` requires it (the drive does not start without it); ``False`` never starts it
@@ -316,6 +330,7 @@ class Vehicle:
         report_every: int = 200,
         stop_grace_s: float = 1.0,
         precise: bool = False,
+        checked: bool | None = None,
     ) -> DriveReport:
         """Drive until ``max_loop_count`` ticks, ``duration`` seconds, :meth:`stop` or cancellation.
 
@@ -328,6 +343,8 @@ class Vehicle:
 
         ``precise=True`` spins the last stretch before each deadline (a window learned from the observed
         wake-up latency, see :class:`~asyncdonkey.clock.DeadlineWaiter`): tighter ticks for some CPU.
+
+        ``checked`` turns checked mode on or off for this drive (``None``: the vehicle's :attr:`checked`).
         """
         if not (isinstance(rate_hz, int | float) and rate_hz > 0 and math.isfinite(rate_hz)):
             raise ValueError(f"Vehicle.run: rate_hz must be a positive number, got {rate_hz!r}")
@@ -337,6 +354,8 @@ class Vehicle:
             raise ValueError(f"Vehicle.run: duration must be a number of seconds >= 0, got {duration!r}")
         if not (isinstance(stop_grace_s, int | float) and stop_grace_s > 0):
             raise ValueError(f"Vehicle.run: stop_grace_s must be a positive number, got {stop_grace_s!r}")
+        if checked is not None and type(checked) is not bool:
+            raise ValueError(f"Vehicle.run: checked must be True, False or None, got {checked!r}")
         if self._drive is not None:
             raise RuntimeError("Vehicle.run: this vehicle is already running")
         loop = asyncio.get_running_loop()
@@ -356,6 +375,9 @@ class Vehicle:
             precise=bool(precise),
         )
         self._drive = drive
+        if self._checked_for(checked):
+            report.checked = True
+            report.checked_parts = drive.check_outputs(self.contracts)
         if self._pending_stop is not None:
             drive.stop_requested, drive.stop_reason = True, self._pending_stop
             self._pending_stop = None
@@ -378,6 +400,7 @@ class Vehicle:
             cancelled = await shutdown_drive(drive)
         finally:
             self._detach_actuators(drive)
+            drive.uncheck_outputs()
             drive.fill_report()
             self.last_report = report
             self._drive = None
@@ -393,6 +416,13 @@ class Vehicle:
             drive.background_error.report = report
             raise drive.background_error
         return report
+
+    def _checked_for(self, checked: bool | None) -> bool:
+        """Whether a drive runs checked: the run's say, else the vehicle's, else :attr:`checked_by_default` (read
+        when the drive starts, so a test that turns the default off covers vehicles built before it)."""
+        if checked is not None:
+            return checked
+        return self.checked if self.checked is not None else bool(self.checked_by_default)
 
     async def _start_safety_process(self, drive: Drive, rate_hz: float) -> SafetyProcess | None:
         """Start the safety process for the actuators it can reach, as :attr:`safety_process` asks.

@@ -36,12 +36,16 @@ import logging
 import math
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
+from .contracts import ContractViolation
 from .errors import OutputCountError, PartSpecError, PartTimeoutError
 from .memory import Memory
 
-__all__ = ["AGE_SUFFIX", "Background", "Entry", "OnError", "build_entry"]
+if TYPE_CHECKING:
+    from .contracts import Contract, Contracts
+
+__all__ = ["AGE_SUFFIX", "Background", "Entry", "OnError", "build_entry", "checked_store"]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
@@ -624,6 +628,63 @@ def _fixed_storer(mem: Memory, name: str, outs: tuple[str, ...]) -> Callable[[An
             _put_origin(origins, k, origin)
 
     return store_many
+
+
+# ------------------------------------------------------------------------------------------ checked mode
+#: a store, either kind: ``store(result, args, now)`` or ``store_fixed(result, origin, now)``
+Store = Callable[[Any, Any, float], None]
+
+
+def checked_store(store: Store | None, name: str, outs: tuple[str, ...], contracts: Contracts) -> Store | None:
+    """``store`` behind a check of each output against its channel's contract (checked mode), or ``store`` itself
+    when none of ``outs`` has a contract (nothing to check, nothing added).
+
+    Why a wrapper, made when a drive starts: contracts can be declared after ``add()``, and a car that is not
+    checked must not pay a per-tick ``if checked`` for it. A value that breaks its contract raises
+    :class:`ContractViolation` naming the part, the channel, the value and what was expected *before anything is
+    stored*, so the tick handles it like any part error (``on_error``) and no output of that call reaches Memory.
+    The values are checked, never replaced: a checked car stores what an unchecked one does (the same objects,
+    which the provenance rule's pass-through test relies on). ``None`` passes: it is Donkeycar's "no value yet"
+    for one of several outputs (a single output of ``None`` is never stored at all).
+    """
+    if store is None:
+        return None
+    plan = tuple((i, k, c) for i, k in enumerate(outs) if (c := contracts.get(k)) is not None)
+    if not plan:
+        return store
+    if len(outs) == 1:
+        ((_, k1, c1),) = plan
+        check1 = c1.check
+
+        def store_checked_one(value: Any, a: Any, now: float) -> None:
+            try:
+                check1(value)
+            except ContractViolation as exc:
+                raise _violation(name, k1, c1, exc) from None
+            store(value, a, now)
+
+        return store_checked_one
+
+    checks = tuple((i, k, c, c.check) for i, k, c in plan)
+
+    def store_checked_many(values: Any, a: Any, now: float) -> None:
+        try:
+            for i, k, c, check in checks:
+                v = values[i]
+                if v is not None:
+                    try:
+                        check(v)
+                    except ContractViolation as exc:
+                        raise _violation(name, k, c, exc) from None
+        except (TypeError, IndexError, KeyError):
+            pass  # not a sequence of enough values: the store itself says so (OutputCountError)
+        store(values, a, now)
+
+    return store_checked_many
+
+
+def _violation(name: str, channel: str, contract: Contract, exc: ContractViolation) -> ContractViolation:
+    return ContractViolation(channel, exc.reason, f"{exc.detail} (expected {contract.describe()})", name)
 
 
 # --------------------------------------------------------------------------------------------- helpers

@@ -453,6 +453,7 @@ class Counter:
 
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
+@pytest.mark.asyncdonkey_checked(False)  # Counter numbers the records on user/angle, past 1.0
 async def test_records_a_drive_on_the_virtual_clock_with_simulated_timestamps(tmp_path):
     v = Vehicle()
     v.add(Counter(), outputs=["cam/image_array", "user/angle", "user/throttle", "user/mode", "recording"])
@@ -476,6 +477,7 @@ async def test_records_a_drive_on_the_virtual_clock_with_simulated_timestamps(tm
 
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
+@pytest.mark.asyncdonkey_checked(False)  # Counter numbers the records on user/angle, past 1.0
 async def test_on_the_virtual_clock_the_disk_takes_no_time_and_nothing_is_dropped(tmp_path):
     """Virtual time jumps 50 ms per tick in microseconds of real time; the writer thread holds it while it
     has records in hand, so a fast simulated drive records every frame even with a small queue."""

@@ -26,6 +26,15 @@ others:
   (plus ``asyncio`` when there are no others), so it can run on several loops.
 
 The hook is declared ``optionalhook=True`` so this plugin loads harmlessly where pytest-asyncio is absent.
+
+**Checked mode.** Under this plugin every :class:`~asyncdonkey.loop.Vehicle` that does not say otherwise drives in
+checked mode: each part output is checked against its channel's contract and a value that breaks it fails the
+part that wrote it (``asyncdonkey.contracts``), so a test finds the part that writes a NaN throttle, not the
+actuator three parts later. Only asyncdonkey's own default is changed (:attr:`Vehicle.checked_by_default`, a class
+attribute, for the session, put back when it ends): nothing is patched or set in the environment, so a project
+that does not drive a Vehicle sees no difference. Turn it off for a test with
+``@pytest.mark.asyncdonkey_checked(False)``, for a vehicle with ``Vehicle(checked=False)`` or
+``run(checked=False)``, for a whole project with ``asyncdonkey_checked = false`` in its pytest ini.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from typing import Any
 
 import pytest
 
+from ..loop import Vehicle
 from ..virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
 
 FACTORY_NAME = "virtual_clock"
@@ -44,6 +54,18 @@ FACTORY_NAME = "virtual_clock"
 #: waiting for something that never comes beside a periodic task fails in a second instead of running away
 TEST_BUDGET_S = 3600.0
 _DEFAULT_NAME = "asyncio"
+#: the ini option and the marker that turn checked mode off (or on) for a project or a test
+CHECKED_OPTION = CHECKED_MARKER = "asyncdonkey_checked"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addini(
+        CHECKED_OPTION,
+        "drive asyncdonkey Vehicles in checked mode during tests (part outputs checked against their channels' "
+        "contracts); default true",
+        type="bool",
+        default=True,
+    )
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -52,6 +74,39 @@ def pytest_configure(config: pytest.Config) -> None:
         "virtual_clock(backend='asyncio', autojump_threshold=0.001, budget_s=3600, **loop_kwargs): run this "
         "asyncio test on asyncdonkey's VirtualClockLoop (time jumps to the next timer when every task is waiting)",
     )
+    config.addinivalue_line(
+        "markers",
+        f"{CHECKED_MARKER}(on=True): drive asyncdonkey Vehicles in this test in checked mode or, with False, not "
+        "(a Vehicle(checked=...) or run(checked=...) still decides for itself)",
+    )
+    before = Vehicle.checked_by_default
+    Vehicle.checked_by_default = bool(config.getini(CHECKED_OPTION))
+    config.add_cleanup(lambda: setattr(Vehicle, "checked_by_default", before))
+
+
+def _checked_by_marker(item: pytest.Item) -> bool | None:
+    """What the test's ``asyncdonkey_checked`` marker asks (``None``: it has none)."""
+    marker = item.get_closest_marker(CHECKED_MARKER)
+    if marker is None:
+        return None
+    on = marker.args[0] if marker.args else marker.kwargs.get("on", True)
+    if type(on) is not bool:
+        raise pytest.UsageError(f"{item.nodeid}: {CHECKED_MARKER}(on) takes True or False, got {on!r}")
+    return on
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Generator[None, object, object]:
+    """A test marked ``asyncdonkey_checked(False)`` (or ``True``) runs, fixtures included, with that default."""
+    on = _checked_by_marker(item)
+    if on is None:
+        return (yield)
+    before = Vehicle.checked_by_default
+    Vehicle.checked_by_default = on
+    try:
+        return (yield)
+    finally:
+        Vehicle.checked_by_default = before
 
 
 def _policy_loop() -> asyncio.AbstractEventLoop:

@@ -17,6 +17,14 @@ record's time (``age_ms`` 0). Deleted records are left out.
 timing have no tub type and are left out). ``--only-when CHANNEL`` keeps the ticks where that channel was
 truthy, as a ``TubWriter`` with that ``run_condition`` records; ``--channels`` picks the channels. The tub
 is written with the project's own tub writer, so Donkeycar's reader (and ``donkey train``) opens it.
+
+**Contracts.** What a file holds is outside data: every value passes a :class:`~asyncdonkey.contracts.Gate` with
+the channels' contracts (Donkeycar's defaults, plus ``contracts=``) before it is written, so a NaN throttle, a
+string in a number column, a 400-digit integer or a frame of another dtype or shape is never carried into the
+new file. Tub → MCAP leaves the refused value out of its tick (the channel's last good value stays the newest
+in the file, as a refused network sample leaves Memory); MCAP → tub leaves out the record holding it (a tub row
+has every channel, and a row with a hole is no training sample). Checking a frame decodes it. The counts per
+channel and reason are in :attr:`ConvertResult.refused` and printed at the end.
 """
 
 from __future__ import annotations
@@ -24,10 +32,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from dataclasses import dataclass
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .contracts import REFUSED, Contract, Contracts, Gate
 from .errors import AsyncdonkeyError
 from .parts.tub import Tub, TubError
 
@@ -62,12 +73,65 @@ class ConvertResult:
     destination: str
     records: int
     channels: list[str]
+    refused: dict[str, dict[str, int]] = field(default_factory=dict)
+    """values refused by their channel's contract and not written, ``{channel: {reason: count}}``"""
+    records_left_out: int = 0
+    """MCAP → tub: records not written because a value of theirs was refused"""
+
+    def summary(self) -> str:
+        """What ``asyncdonkey convert`` prints: the records written and, if any, what was refused."""
+        lines = [f"{self.records} records: {self.source} -> {self.destination} ({', '.join(self.channels)})"]
+        if self.refused:
+            n = sum(sum(r.values()) for r in self.refused.values())
+            detail = "; ".join(
+                f"{ch}: " + ", ".join(f"{reason} {k}" for reason, k in sorted(reasons.items()))
+                for ch, reasons in sorted(self.refused.items())
+            )
+            left_out = f", {self.records_left_out} records left out" if self.records_left_out else ""
+            lines.append(f"refused {n} values that break their channel's contract{left_out} ({detail})")
+        return "\n".join(lines)
+
+
+def _gate(contracts: Contracts | Mapping[str, Contract] | None) -> Gate:
+    return (contracts if isinstance(contracts, Contracts) else Contracts(contracts)).gate("convert")
+
+
+def _counts(gate: Gate) -> dict[str, dict[str, int]]:
+    return {ch: dict(sorted(r.items())) for ch, r in sorted(gate.counts().items())}
+
+
+def _image_admitted(gate: Gate, rec: Any, key: str, now: float) -> bool:
+    """Does ``rec``'s frame ``key`` keep its channel's contract? Decoded only when there is one to keep; a frame
+    that does not decode breaks it (``encoding``)."""
+    if gate.contracts.get(key) is None:
+        return True
+    try:
+        image = rec[key]
+    except TubError as exc:
+        gate.refuse(key, "encoding", str(exc), now)
+        return False
+    return gate.admit(key, image, now) is not REFUSED
+
+
+def _values_admitted(gate: Gate, pairs: Sequence[tuple[str, Any]], now: float) -> bool:
+    """Whether every ``(channel, value)`` keeps its contract (``None``, a value not recorded, is not checked);
+    each is asked, so every refusal is counted."""
+    ok = True
+    for ch, value in pairs:
+        if value is not None and gate.admit(ch, value, now) is REFUSED:
+            ok = False
+    return ok
 
 
 def tub_to_mcap(
-    tub_path: str | os.PathLike[str], mcap_path: str | os.PathLike[str], *, compression: str = "zstd"
+    tub_path: str | os.PathLike[str],
+    mcap_path: str | os.PathLike[str],
+    *,
+    compression: str = "zstd",
+    contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ConvertResult:
-    """Write the tub's records to a new MCAP file (see the module docstring)."""
+    """Write the tub's records to a new MCAP file (see the module docstring); values that break their channel's
+    contract are left out and counted."""
     from .parts.mcap.encode import TickEncoder, TickSnapshot, TimeMap
     from .parts.mcap.sink import McapSink
 
@@ -78,6 +142,7 @@ def tub_to_mcap(
     encoder = TickEncoder(every_tick=True, kinds=kinds, timing=False, steering=())
     meta = {str(k): str(v) for k, v in tub.metadata.items()} if isinstance(tub.metadata, dict) else {}
     meta["converted_from"] = str(tub.base_path)
+    gate = _gate(contracts)
     sink = McapSink(mcap_path, encoder, metadata=meta, fsync=False, compression=compression)
     n = 0
     try:
@@ -88,6 +153,7 @@ def tub_to_mcap(
             t = float(ts) / 1000.0
             if sink.times is None:
                 sink.times = TimeMap(t, round(float(ts) * 1e6), "tub")
+            now = time.monotonic()
             values: dict[str, Any] = {}
             for key, value in rec.raw.items():
                 if key.startswith("_") or key in skipped or value is None:
@@ -97,6 +163,10 @@ def tub_to_mcap(
                         value = rec.image_path(key).read_bytes()
                     except OSError:
                         continue
+                    if not _image_admitted(gate, rec, key, now):
+                        continue
+                elif gate.admit(key, value, now) is REFUSED:
+                    continue  # the value as recorded is written, never a normalised copy: only checked here
                 values[key] = value
             sink.write(t, tuple(TickSnapshot(t, values, dict.fromkeys(values, t), 0, None, None, None)))
             n += 1
@@ -104,7 +174,8 @@ def tub_to_mcap(
                 sink.sync()
     finally:
         sink.close()
-    return ConvertResult(str(tub.base_path), os.fspath(mcap_path), n, [k for k in tub.inputs if k not in skipped])
+    channels = [k for k in tub.inputs if k not in skipped]
+    return ConvertResult(str(tub.base_path), os.fspath(mcap_path), n, channels, _counts(gate))
 
 
 def mcap_to_tub(
@@ -114,8 +185,10 @@ def mcap_to_tub(
     image_key: str = "cam/image_array",
     channels: list[str] | None = None,
     only_when: str | None = None,
+    contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ConvertResult:
-    """Write the recording's camera frames and controls to a new tub (see the module docstring)."""
+    """Write the recording's camera frames and controls to a new tub (see the module docstring); a record holding
+    a value that breaks its channel's contract is left out and counted."""
     from .parts.mcap.encode import topic_for
     from .parts.mcap.reader import McapTub
     from .parts.tub.appender import TubAppender
@@ -139,18 +212,24 @@ def mcap_to_tub(
         raise ConvertError(f"{os.fspath(tub_path)} already exists; convert into a new tub directory")
     meta = {k: v for k, v in src.metadata.items()}
     meta["converted_from"] = os.fspath(mcap_path)
+    gate = _gate(contracts)
     app = TubAppender(tub_path, inputs, types, meta)
-    n = 0
+    n = left_out = 0
     try:
         for rec in src.records():
+            now = time.monotonic()
             values = [rec.image_bytes(image_key), *(rec.raw.get(ch) for ch in inputs[1:])]
+            image_ok = _image_admitted(gate, rec, image_key, now)
+            if not (_values_admitted(gate, list(zip(inputs[1:], values[1:], strict=True)), now) and image_ok):
+                left_out += 1
+                continue
             app.write(rec.raw["_timestamp_ms"] / 1000.0, values)
             n += 1
             if app.unsynced >= 200:
                 app.sync()
     finally:
         app.close()
-    return ConvertResult(os.fspath(mcap_path), str(app.base), n, inputs)
+    return ConvertResult(os.fspath(mcap_path), str(app.base), n, inputs, _counts(gate), left_out)
 
 
 def convert(
@@ -160,17 +239,20 @@ def convert(
     image_key: str = "cam/image_array",
     channels: list[str] | None = None,
     only_when: str | None = None,
+    contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ConvertResult:
     """Tub directory → MCAP file, or MCAP file → tub directory, by what ``source`` is."""
     from .recordings import is_mcap
 
     if is_mcap(source):
-        return mcap_to_tub(source, destination, image_key=image_key, channels=channels, only_when=only_when)
+        return mcap_to_tub(
+            source, destination, image_key=image_key, channels=channels, only_when=only_when, contracts=contracts
+        )
     if not Path(source).is_dir():
         raise ConvertError(f"{os.fspath(source)}: neither a tub directory nor an MCAP file")
     if Path(destination).exists():
         raise ConvertError(f"{os.fspath(destination)} already exists; convert into a new file")
-    return tub_to_mcap(source, destination)
+    return tub_to_mcap(source, destination, contracts=contracts)
 
 
 def add_convert_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -197,5 +279,5 @@ def convert_main(args: argparse.Namespace) -> int:
     except (ConvertError, TubError, OSError, ImportError) as exc:
         print(f"asyncdonkey: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    print(f"{res.records} records: {res.source} -> {res.destination} ({', '.join(res.channels)})")
+    print(res.summary())
     return 0

@@ -2,6 +2,9 @@
 
 Replay and conversion read records (``.raw`` values, ``record[key]`` decoding images, ``.index``) from either;
 :func:`open_recording` picks the reader by what the path is. MCAP needs the ``asyncdonkey[mcap]`` extra.
+
+What a file holds is outside data, as a network sample is: both pass every value they use through a
+:class:`~asyncdonkey.contracts.Gate` (:func:`admit_with_reason`) before it enters a drive or another file.
 """
 
 from __future__ import annotations
@@ -10,9 +13,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+from .contracts import REFUSED, Gate
 from .parts.tub import Tub, TubFormatError
 
-__all__ = ["MCAP_MAGIC", "is_mcap", "open_recording"]
+__all__ = ["MCAP_MAGIC", "admit_with_reason", "is_mcap", "open_recording"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -38,3 +42,13 @@ def open_recording(path: str | os.PathLike[str], image_key: str = "cam/image_arr
     if Path(path).is_file():
         raise TubFormatError(f"{os.fspath(path)}: not a tub directory nor an MCAP file")
     return Tub(path)
+
+
+def admit_with_reason(gate: Gate, channel: str, value: Any, now: float = 0.0) -> tuple[Any, str | None]:
+    """``gate.admit(channel, value, now)`` and, when it refused the value, the reason it counted (``"nan"``), so a
+    reader can say per record what it left out (the gate itself counts per channel and reason)."""
+    before = {r: n for (ch, r), n in gate.refused.items() if ch == channel}
+    v = gate.admit(channel, value, now)
+    if v is not REFUSED:
+        return v, None
+    return v, next(r for (ch, r), n in gate.refused.items() if ch == channel and n != before.get(r, 0))

@@ -11,7 +11,10 @@ A replay is an ordinary :class:`~asyncdonkey.loop.Vehicle` with three parts:
 
 1. a **tub player** that, each tick, sleeps until the next record's time and emits its image and user values
    (``_timestamp_ms`` relative to the first record played; records without an image or user values are
-   counted and passed over);
+   counted and passed over). It is the one place where recorded values enter the drive, so each of them passes
+   the car's :class:`~asyncdonkey.contracts.Gate` there: a record holding a value that breaks its channel's
+   contract (a NaN throttle, a string where a number belongs, an image of another dtype or shape) is refused,
+   counted per channel and reason, and not played, so every channel keeps its last good value;
 2. the **pilot** (a model file loaded with :func:`~asyncdonkey.parts.pilot.load_pilot`: ``.onnx`` or
    ``.tflite``; or any object with ``predict(image) -> (angle, throttle)``, or such a callable), timed in real
    time with :func:`time.perf_counter`;
@@ -46,7 +49,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,11 +57,12 @@ from typing import Any
 import numpy as np
 
 from .clock import DeadlineWaiter, get_clock
+from .contracts import Contract, Contracts, Gate
 from .errors import AsyncdonkeyError
 from .loop import PartError, Vehicle
 from .options import option, positive_float
 from .parts.tub import Record, Tub, TubError
-from .recordings import open_recording
+from .recordings import admit_with_reason, open_recording
 
 __all__ = [
     "CSV_COLUMNS",
@@ -149,9 +153,13 @@ class SkippedRecord:
     reason: str
     catalog: str | None = None
     line: int | None = None
+    detail: str | None = None
+    """for a ``refused`` record, the channels and reasons: ``"user/throttle: nan"``"""
 
     @property
     def why(self) -> str:
+        if self.detail is not None:
+            return f"{self.reason} ({self.detail})"
         if self.catalog is None:
             return self.reason
         return f"{self.reason} ({self.catalog} line {self.line})"
@@ -176,8 +184,12 @@ class ReplayReport:
     """records scored (played through the pilot)."""
     skipped: dict[str, int] = field(default_factory=dict)
     """records passed over, by reason: ``corrupt`` (a catalog line that is not a record: see ``corrupt``),
-    ``no_timestamp``, ``no_image``, ``bad_image`` (file missing or not decodable), ``no_user_values`` (missing or
-    not a finite number). Deleted records are not played at all."""
+    ``no_timestamp``, ``no_image``, ``bad_image`` (file missing or not decodable), ``no_user_values`` (missing, or
+    not a finite number on a channel without a contract), ``refused`` (a value broke its channel's contract: see
+    ``refused``). Deleted records are not played at all."""
+    refused: dict[str, dict[str, int]] = field(default_factory=dict)
+    """values refused by the replay's gate, ``{channel: {reason: count}}`` (``nan``, ``type``, ``range``,
+    ``dtype``, ``shape``...: see ``docs/contracts.md``)."""
     corrupt: list[dict[str, Any]] = field(default_factory=list)
     """where each corrupt record is: ``{"index", "catalog", "line"}`` (the line counted from 1)."""
     angle_mae: float | None = None
@@ -211,6 +223,7 @@ class ReplayReport:
             "pilot": self.pilot,
             "records": self.records,
             "skipped": dict(self.skipped),
+            "refused": {ch: dict(reasons) for ch, reasons in self.refused.items()},
             "corrupt": [dict(c) for c in self.corrupt],
             "angle_mae": self.angle_mae,
             "throttle_mae": self.throttle_mae,
@@ -250,6 +263,8 @@ class ReplayReport:
             shown = ", ".join(f"{c['catalog']} line {c['line']}" for c in self.corrupt[:_CORRUPT_SHOWN])
             more = len(self.corrupt) - _CORRUPT_SHOWN
             lines.append(f"corrupt          {shown}" + (f" and {more} more" if more > 0 else ""))
+        if self.refused:
+            lines.append(f"refused          {_refusals(self.refused)}")
         lines.append(f"replayed         {self.replayed_s:.1f} s of recording in {self.real_s:.2f} s{ratio}, {clock}")
         if self.records:
             lines += [
@@ -268,6 +283,14 @@ class ReplayReport:
 _CORRUPT_SHOWN = 5
 
 
+def _refusals(refused: Mapping[str, Mapping[str, int]]) -> str:
+    """``user/throttle: nan 2, type 1; cam/image_array: shape 1``"""
+    return "; ".join(
+        f"{ch}: " + ", ".join(f"{reason} {n}" for reason, n in sorted(reasons.items()))
+        for ch, reasons in sorted(refused.items())
+    )
+
+
 def _pace(ratio: float) -> str:
     """Seconds of recording per second of replay: ``128x``, ``9.9x``, ``0.50x`` (a slow one must not read 0x)."""
     return f"{ratio:.{0 if ratio >= 20 else 1 if ratio >= 2 else 2}f}x"
@@ -279,6 +302,10 @@ class TubPlayer:
     Outputs: image, user angle, user throttle, index, ``_timestamp_ms``, seconds since the first record
     played, and ``True``; once the records run out, ``None`` values with ``False`` (so the parts gated on the
     last channel do not run) and the vehicle is asked to stop.
+
+    Every recorded value passes ``gate`` before it is emitted: a file is outside data like any network sample. A
+    record with a refused value is not played (skipped as ``refused``), so nothing it holds reaches Memory and
+    every channel keeps its last good value.
     """
 
     def __init__(
@@ -288,12 +315,14 @@ class TubPlayer:
         user_keys: Sequence[str],
         speed: float,
         on_end: Callable[[], None],
+        gate: Gate | None = None,
     ) -> None:
         self._records = records
         self._image_key = image_key
         self._angle_key, self._throttle_key = user_keys
         self._speed = speed
         self._on_end = on_end
+        self.gate = gate if gate is not None else Contracts().gate("replay")
         self.skipped: dict[str, int] = {}
         self.skipped_records: list[SkippedRecord] = []
         self.late_max_s = 0.0
@@ -302,13 +331,28 @@ class TubPlayer:
         self._last_at = 0.0
         self._waiter: DeadlineWaiter | None = None  # one OS timer for the waits of every tick
 
-    def _skip(self, reason: str, rec: Record) -> None:
+    def _skip(self, reason: str, rec: Record, detail: str | None = None) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
         ts = rec.raw.get("_timestamp_ms")
         index = rec.raw.get("_index")
         self.skipped_records.append(
-            SkippedRecord(index if isinstance(index, int) else None, ts if _is_number(ts) else None, reason)
+            SkippedRecord(
+                index if isinstance(index, int) else None, ts if _is_number(ts) else None, reason, detail=detail
+            )
         )
+
+    def _admit(self, values: tuple[tuple[str, Any], ...]) -> tuple[list[Any], str | None]:
+        """Each ``(channel, value)`` through the gate (every one, so each refusal is counted): the admitted values,
+        and ``None``, or what was refused (``"user/throttle: nan"``)."""
+        now = get_clock().now()
+        admitted: list[Any] = []
+        refused: list[str] = []
+        for channel, value in values:
+            v, reason = admit_with_reason(self.gate, channel, value, now)
+            if reason is not None:
+                refused.append(f"{channel}: {reason}")
+            admitted.append(v)
+        return admitted, ("; ".join(refused) if refused else None)
 
     def _next(self) -> tuple[Record, Any, float, float, Any] | None:
         """The next playable record and its values; counts the others."""
@@ -319,7 +363,7 @@ class TubPlayer:
                 self._skip("no_timestamp", rec)
                 continue
             ua, ut = raw.get(self._angle_key), raw.get(self._throttle_key)
-            if not (_is_number(ua) and _is_number(ut)):
+            if ua is None or ut is None:
                 self._skip("no_user_values", rec)
                 continue
             if raw.get(self._image_key) is None:
@@ -329,6 +373,15 @@ class TubPlayer:
                 image = rec[self._image_key]
             except TubError:
                 self._skip("bad_image", rec)
+                continue
+            (image, ua, ut), refused = self._admit(
+                ((self._image_key, image), (self._angle_key, ua), (self._throttle_key, ut))
+            )
+            if refused is not None:
+                self._skip("refused", rec, refused)
+                continue
+            if not (_is_number(ua) and _is_number(ut)):  # channels without a contract: still numbers to score
+                self._skip("no_user_values", rec)
                 continue
             if not isinstance(image, np.ndarray):
                 self._skip("no_image", rec)
@@ -406,6 +459,7 @@ def replay(
     csv_path: str | os.PathLike[str] | None = None,
     user_keys: Sequence[str] = ("user/angle", "user/throttle"),
     image_key: str = "cam/image_array",
+    contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ReplayReport:
     """Replay the tub at ``tub_path`` through ``pilot`` and compare with the recorded user values.
 
@@ -413,6 +467,8 @@ def replay(
     and shut down at the end), an object with ``predict(image) -> (angle, throttle)``, or such a callable.
     ``speed=None`` replays on the virtual clock (as fast as the CPU allows, deterministic); a number replays on a
     real event loop at that multiple of the recorded pace. ``csv_path`` also writes the per-record rows.
+    ``contracts`` declares what the recorded channels' values may be, beside (or replacing) Donkeycar's defaults;
+    a record holding a value that breaks one is refused (``report.refused``) and not played.
 
     Must be called outside a running event loop (use :func:`areplay` inside one). Raises :class:`ReplayError`
     (bad model, pilot failure, a tub without the channels) and :class:`~asyncdonkey.parts.tub.TubError`
@@ -426,7 +482,15 @@ def replay(
         runner = asyncio.Runner()
     with runner:
         return runner.run(
-            areplay(tub_path, pilot, speed=speed, csv_path=csv_path, user_keys=user_keys, image_key=image_key)
+            areplay(
+                tub_path,
+                pilot,
+                speed=speed,
+                csv_path=csv_path,
+                user_keys=user_keys,
+                image_key=image_key,
+                contracts=contracts,
+            )
         )
 
 
@@ -438,6 +502,7 @@ async def areplay(
     csv_path: str | os.PathLike[str] | None = None,
     user_keys: Sequence[str] = ("user/angle", "user/throttle"),
     image_key: str = "cam/image_array",
+    contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ReplayReport:
     """:func:`replay` on the running loop (a :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` for exact times)."""
     if speed is not None and not (isinstance(speed, int | float) and speed > 0 and math.isfinite(speed)):
@@ -454,8 +519,10 @@ async def areplay(
     predict, pilot_name, owned = _resolve_pilot(pilot, lambda: _first_frame_shape(tub, image_key))
     real_start = time.perf_counter()
     try:
-        vehicle = Vehicle()
-        player = TubPlayer(tub.records(), image_key, user_keys, 1.0 if speed is None else float(speed), vehicle.stop)
+        vehicle = Vehicle(contracts=contracts)
+        pace = 1.0 if speed is None else float(speed)
+        gate = vehicle.contracts.gate("replay")
+        player = TubPlayer(tub.records(), image_key, user_keys, pace, vehicle.stop, gate)
         timed = TimedPilot(predict, pilot_name)
         scorer = Scorer()
         angle_key, throttle_key = user_keys
@@ -560,6 +627,7 @@ def _build_report(
         pilot=pilot_name,
         records=len(rows),
         skipped=dict(sorted(skipped.items())),
+        refused={ch: dict(sorted(r.items())) for ch, r in sorted(player.gate.counts().items())},
         corrupt=[{"index": i, "catalog": name, "line": line} for i, name, line in corrupt],
         late_ms_max=player.late_max_s * 1e3,
         speed=None if speed is None else float(speed),
@@ -593,7 +661,13 @@ def _build_report(
 
 
 def _is_number(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+    """A finite number a float can hold (a 400-digit integer is not one: ``math.isfinite`` would raise on it)."""
+    if not isinstance(x, int | float) or isinstance(x, bool):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 def _scalar(x: Any) -> float:

@@ -131,7 +131,7 @@ class Contract:
     high: float | None = None
     choices: frozenset[str] | None = None
     dtype: str | None = None
-    shape: tuple[int | None, ...] | None = None
+    shape: tuple[tuple[int | None, ...], ...] | None = None
     max_len: int | None = None
     safe: Any = None
     check: Check = field(init=False, repr=False, compare=False)
@@ -165,13 +165,20 @@ class Contract:
         return cls(Kind.ENUM, choices=frozenset(options), safe=safe)
 
     @classmethod
-    def array(cls, dtype: Any, shape: Iterable[int | None] | None = None, *, max_len: int | None = None) -> Contract:
-        """A numpy array of ``dtype`` whose shape matches ``shape`` (``None`` for any length on an axis), and at
+    def array(
+        cls,
+        dtype: Any,
+        shape: Iterable[int | None] | Iterable[Iterable[int | None]] | None = None,
+        *,
+        max_len: int | None = None,
+    ) -> Contract:
+        """A numpy array of ``dtype`` whose shape matches ``shape`` (``None`` for any length on an axis; a list of
+        such patterns for any of them: ``[(None, None, 3), (None, None)]`` takes colour and grey frames), and at
         most ``max_len`` elements in all."""
         return cls(
             Kind.ARRAY,
             dtype=np.dtype(dtype).str,
-            shape=None if shape is None else tuple(shape),
+            shape=None if shape is None else _patterns(shape),
             max_len=max_len,
         )
 
@@ -198,9 +205,29 @@ class Contract:
         if k is Kind.ENUM:
             return "one of " + ", ".join(repr(c) for c in sorted(self.choices or ()))
         if k is Kind.ARRAY:
-            shape = "any shape" if self.shape is None else _shape_text(self.shape)
+            shape = "any shape" if self.shape is None else " or ".join(_shape_text(p) for p in self.shape)
             return f"a {np.dtype(self.dtype).name} array of shape {shape}"
         return f"{'JPEG ' if k is Kind.JPEG else ''}bytes up to {self.max_len} long"
+
+
+def _patterns(shape: Any) -> tuple[tuple[int | None, ...], ...]:
+    """One shape pattern, or several, as a tuple of patterns."""
+    items = list(shape)
+    if items and all(isinstance(p, tuple | list) for p in items):
+        return tuple(tuple(p) for p in items)
+    return (tuple(items),)
+
+
+def _shape_matches(patterns: tuple[tuple[int | None, ...], ...], got: tuple[int, ...]) -> bool:
+    for p in patterns:
+        if len(p) != len(got):
+            continue
+        for want, n in zip(p, got, strict=True):
+            if want is not None and want != n:
+                break
+        else:
+            return True
+    return False
 
 
 def _shape_text(shape: tuple[int | None, ...]) -> str:
@@ -222,7 +249,7 @@ def _compile(c: Contract) -> Check:
             if v.__class__ is float and lo <= v <= hi:
                 return v
             if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise _fail("type", f"expected a number, got {_typed(v)}")
+                raise _fail("type", f"got {_typed(v)}, not a number")
             try:
                 f = float(v)
             except (OverflowError, ValueError):
@@ -241,7 +268,7 @@ def _compile(c: Contract) -> Check:
 
         def check_int(v: Any) -> Any:
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise _fail("type", f"expected an integer, got {_typed(v)}")
+                raise _fail("type", f"got {_typed(v)}, not an integer")
             i = int(v)
             if (ilo is not None and i < ilo) or (ihi is not None and i > ihi):
                 raise _fail("range", f"{_short(v)} is outside [{ilo}, {ihi}]")
@@ -255,7 +282,7 @@ def _compile(c: Contract) -> Check:
                 return v
             if isinstance(v, np.bool_):
                 return bool(v)
-            raise _fail("type", f"expected true or false, got {_typed(v)}")
+            raise _fail("type", f"got {_typed(v)}, not true or false")
 
         return check_bool
     if k is Kind.ENUM:
@@ -265,7 +292,7 @@ def _compile(c: Contract) -> Check:
             if v.__class__ is str and v in choices:
                 return v
             if not isinstance(v, str):
-                raise _fail("type", f"expected one of {sorted(choices)}, got {_typed(v)}")
+                raise _fail("type", f"got {_typed(v)}, not a string")
             raise _fail("choice", f"{_short(v)} is not one of {sorted(choices)}")
 
         return check_enum
@@ -275,13 +302,11 @@ def _compile(c: Contract) -> Check:
 
         def check_array(v: Any) -> Any:
             if not isinstance(v, np.ndarray):
-                raise _fail("type", f"expected a {dtype.name} array, got {_typed(v)}")
+                raise _fail("type", f"got {_typed(v)}, not an array")
             if v.dtype != dtype:
-                raise _fail("dtype", f"expected dtype {dtype.name}, got {v.dtype}")
-            if shape is not None and (
-                v.ndim != len(shape) or any(d is not None and d != n for d, n in zip(shape, v.shape, strict=True))
-            ):
-                raise _fail("shape", f"expected shape {_shape_text(shape)}, got {v.shape}")
+                raise _fail("dtype", f"got an array of dtype {v.dtype}")
+            if shape is not None and not _shape_matches(shape, v.shape):
+                raise _fail("shape", f"got an array of shape {v.shape}")
             if max_len is not None and v.size > max_len:
                 raise _fail("size", f"{v.size} elements, more than {max_len}")
             if v.dtype.kind == "f" and not np.isfinite(v).all():
@@ -296,7 +321,7 @@ def _compile(c: Contract) -> Check:
         if isinstance(v, bytearray | memoryview):
             v = bytes(v)
         if not isinstance(v, bytes):
-            raise _fail("type", f"expected bytes, got {_typed(v)}")
+            raise _fail("type", f"got {_typed(v)}, not bytes")
         if len(v) > blen:
             raise _fail("size", f"{len(v)} bytes, more than {blen}")
         if jpeg and not (v[:2] == b"\xff\xd8" and v[-2:] == b"\xff\xd9"):
@@ -317,7 +342,8 @@ def default_contracts() -> dict[str, Contract]:
 
     Steering and throttle commands are numbers in [-1, 1] with the safe value 0 (straight, stopped); the mode
     is one of Donkeycar's three with ``"user"`` safe; ``recording`` is a bool, ``False`` safe; the camera frame is
-    a ``uint8`` image of any size up to 4096 x 4096 with 3 channels (Donkeycar's ``cam/image_array``)."""
+    a ``uint8`` image of any size up to 4096 x 4096, RGB (H, W, 3) or grey (H, W) as Donkeycar's cameras write
+    with ``IMAGE_DEPTH`` 3 or 1 (``cam/image_array``)."""
     command = Contract.number(-1.0, 1.0, safe=0.0)
     return {
         "user/angle": command,
@@ -328,7 +354,7 @@ def default_contracts() -> dict[str, Contract]:
         "throttle": command,
         "user/mode": Contract.choice(*_MODES, safe="user"),
         "recording": Contract.boolean(safe=False),
-        "cam/image_array": Contract.array(np.uint8, (None, None, 3), max_len=_MAX_IMAGE),
+        "cam/image_array": Contract.array(np.uint8, [(None, None, 3), (None, None)], max_len=_MAX_IMAGE),
     }
 
 

@@ -75,9 +75,11 @@ def test_the_mode_recording_and_image_defaults():
         cs.check("recording", 1)
     frame = np.zeros((120, 160, 3), np.uint8)
     assert cs.check("cam/image_array", frame) is frame
+    grey = np.zeros((120, 160), np.uint8)  # Donkeycar's cameras with IMAGE_DEPTH = 1
+    assert cs.check("cam/image_array", grey) is grey
     for bad, reason in (
         (frame.astype(np.float32), "dtype"),
-        (np.zeros((120, 160), np.uint8), "shape"),
+        (np.zeros((120, 160, 1), np.uint8), "shape"),
         (np.zeros((120, 160, 4), np.uint8), "shape"),
         (np.zeros((5000, 5000, 3), np.uint8), "size"),
         (frame.tolist(), "type"),

@@ -32,7 +32,7 @@ def test_commands_are_donkeycar_messages_checked_against_the_contracts_never_cla
     assert parse_command({"angle": None, "throttle": None}).drives is False
     for bad, word in (
         ({"throttle": "fast"}, "throttle"),
-        ({"throttle": "0.25"}, "expected a number"),  # a string is not a number: no parsing at the boundary
+        ({"throttle": "0.25"}, "not a number"),  # a string is not a number: no parsing at the boundary
         ({"angle": -3}, "outside"),  # refused, not clamped: 1e300 made 1.0 would be full lock
         ({"angle": float("nan")}, "NaN"),
         ({"angle": True}, "angle"),

@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
+import operator
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
@@ -218,16 +219,31 @@ def _patterns(shape: Any) -> tuple[tuple[int | None, ...], ...]:
     return (tuple(items),)
 
 
-def _shape_matches(patterns: tuple[tuple[int | None, ...], ...], got: tuple[int, ...]) -> bool:
+def _shape_test(patterns: tuple[tuple[int | None, ...], ...]) -> Callable[[tuple[int, ...]], bool]:
+    """``matches(shape)`` for a set of patterns, decided once: by the number of axes, then only the axes whose
+    length is fixed (a camera frame's (*, *, 3) tests one axis), with no loop where there is nothing to test."""
+    by_ndim: dict[int, list[tuple[Callable[[tuple[int, ...]], Any], Any]]] = {}
+    free: set[int] = set()
     for p in patterns:
-        if len(p) != len(got):
+        fixed = [(i, d) for i, d in enumerate(p) if d is not None]
+        if not fixed:
+            free.add(len(p))
             continue
-        for want, n in zip(p, got, strict=True):
-            if want is not None and want != n:
-                break
-        else:
+        # itemgetter picks the fixed axes in C: one call and one comparison, whatever the pattern
+        idx, want = [i for i, _ in fixed], tuple(d for _, d in fixed)
+        by_ndim.setdefault(len(p), []).append((operator.itemgetter(*idx), want if len(want) > 1 else want[0]))
+    get = by_ndim.get
+
+    def matches(shape: tuple[int, ...]) -> bool:
+        nd = len(shape)
+        if nd in free:
             return True
-    return False
+        for pick, want in get(nd, ()):  # noqa: SIM110 - a loop: any() and its generator cost twice as much
+            if pick(shape) == want:
+                return True
+        return False
+
+    return matches
 
 
 def _shape_text(shape: tuple[int | None, ...]) -> str:
@@ -298,18 +314,20 @@ def _compile(c: Contract) -> Check:
         return check_enum
     if k is Kind.ARRAY:
         dtype = np.dtype(c.dtype)
-        shape, max_len = c.shape, c.max_len
+        max_len = c.max_len
+        shape_ok = None if c.shape is None else _shape_test(c.shape)
+        floats = dtype.kind in "fc"
 
         def check_array(v: Any) -> Any:
             if not isinstance(v, np.ndarray):
                 raise _fail("type", f"got {_typed(v)}, not an array")
-            if v.dtype != dtype:
+            if v.dtype is not dtype and v.dtype != dtype:
                 raise _fail("dtype", f"got an array of dtype {v.dtype}")
-            if shape is not None and not _shape_matches(shape, v.shape):
+            if shape_ok is not None and not shape_ok(v.shape):
                 raise _fail("shape", f"got an array of shape {v.shape}")
             if max_len is not None and v.size > max_len:
                 raise _fail("size", f"{v.size} elements, more than {max_len}")
-            if v.dtype.kind == "f" and not np.isfinite(v).all():
+            if floats and not np.isfinite(v).all():
                 raise _fail("nan", "the array holds NaN or inf")
             return v
 

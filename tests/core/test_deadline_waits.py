@@ -210,6 +210,17 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
     monkeypatch.setattr(clock, "_TWO_STAGE_ABOVE_S", math.inf)
     monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
     spacing = 0.004
+    # how many samples the waiter had at each refresh of its window: on a loaded machine a wait that finds its
+    # deadline (or its spin window) already passed learns nothing, so the refreshes need not fall at waits 65
+    # and 97
+    refreshed_with: list[int] = []
+    refresh = DeadlineWaiter._refresh_window
+
+    def recorded_refresh(self: DeadlineWaiter) -> None:
+        refreshed_with.append(len(self._late))
+        refresh(self)
+
+    monkeypatch.setattr(DeadlineWaiter, "_refresh_window", recorded_refresh)
 
     async def main():
         with DeadlineWaiter(precise=True) as waiter:
@@ -220,8 +231,9 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
             assert max(late) < GENEROUS_S
             # the window now comes from what was observed: after the warm-up, every few waits, a high quantile of
             # the early timer's lateness less the tolerance precise mode accepts, within the floor and the
-            # ceiling. The last refresh was due at wait 96 and applied when wait 97 was armed.
-            samples = sorted(waiter._late[:96])
+            # ceiling. On a quiet machine the last refresh was due at wait 96 and applied when wait 97 was armed.
+            assert refreshed_with and refreshed_with[-1] >= clock._LATE_WARMUP
+            samples = sorted(waiter._late[: refreshed_with[-1]])
             q = samples[min(len(samples) - 1, int(clock._LATE_QUANTILE * len(samples)))]
             expected = min(max(q - clock.PRECISE_TOLERANCE_S, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
             assert waiter.spin_window_s == pytest.approx(expected)
@@ -556,17 +568,60 @@ def test_arming_a_timerfd_that_is_gone_raises_oserror_with_its_errno():
     assert info.value.errno in (errno.EBADF, errno.EINVAL)  # EINVAL if the number was reused meanwhile
 
 
-def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned():
-    async def main() -> tuple[float, float]:
-        with DeadlineWaiter(precise=True) as first:
-            await _lateness_of_waits(first, clock._LATE_WARMUP + 2, 0.002)
-            learned = first.spin_window_s
-        with DeadlineWaiter(precise=True) as second:
-            return learned, second.spin_window_s
+T0 = 1000.0  # deadlines of taught waits: only the gaps between them matter
 
-    learned, start = run_on(uvloop.new_event_loop, main())
-    assert learned != clock._WINDOW_START_S or learned == clock._WINDOW_CEIL_S  # it did learn
-    assert start == learned  # the machine's wake-up latency, not the half-millisecond guess
+
+def _unrun_precise_waiter() -> DeadlineWaiter:
+    """A precise waiter on a timerfd of a loop that never runs: what it learns comes from :func:`_teach`."""
+    return DeadlineWaiter(uvloop.new_event_loop(), precise=True)
+
+
+def _close(waiter: DeadlineWaiter) -> None:
+    waiter.close()
+    waiter._loop.close()
+
+
+def _teach(waiter: DeadlineWaiter, deadlines: list[float], late: Callable[[int], float]) -> None:
+    """Teach ``waiter`` what precise waits for ``deadlines`` would, without sleeping: each wait's own bookkeeping,
+    in :meth:`DeadlineWaiter.wait_until`'s order (``_target``: the period class from the gap and a refresh of the
+    window that fell due; the first sleep's wake-up; ``_learn``: the lateness of the sleep before the spin), with
+    wake-ups ``late(k)`` seconds late for the k-th wait instead of what a real timer did. Real wake-ups decide
+    nothing here: on a loaded machine a wait that finds its deadline passed learns nothing, which moved the
+    refreshes and the gaps (so the period class that learned) from run to run."""
+    for k, deadline in enumerate(deadlines):
+        target = waiter._target(deadline)
+        first = target - waiter._guard_s
+        waiter._first_at = first
+        waiter._first_woke(first + late(k))
+        waiter._learn(late(k))
+
+
+def _every(spacing_s: float, n: int, after: float = T0) -> list[float]:
+    return [after + k * spacing_s for k in range(1, n + 1)]
+
+
+def _lateness(k: int) -> float:
+    """A quiet machine's wake-ups: 50 to 95 µs late."""
+    return 50e-6 + (k % 10) * 5e-6
+
+
+def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned(monkeypatch):
+    monkeypatch.setattr(clock, "_learned", {})
+    monkeypatch.setattr(clock, "_learned_window_s", None)
+    first = _unrun_precise_waiter()
+    try:
+        assert first.spin_window_s == clock._WINDOW_START_S  # nothing learned in this process yet: the guess
+        _teach(first, _every(0.002, clock._LATE_WARMUP + 2), _lateness)
+        learned = first.spin_window_s
+    finally:
+        _close(first)
+    second = _unrun_precise_waiter()
+    try:
+        start = second.spin_window_s
+    finally:
+        _close(second)
+    assert learned == pytest.approx(95e-6 - clock.PRECISE_TOLERANCE_S)  # it did learn: its q99, less the tolerance
+    assert start == learned  # the machine's wake-up latency, not the guess
 
 
 def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeypatch):
@@ -577,37 +632,41 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
     # two sleeps throughout: a switch to one would start the window's samples afresh from the first sleep's
     monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
 
-    async def learn(spacing_s: float) -> float:
-        with DeadlineWaiter(precise=True) as waiter:
-            await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, spacing_s)
+    def learn(spacing_s: float, late_s: float) -> float:
+        waiter = _unrun_precise_waiter()
+        try:
+            _teach(waiter, _every(spacing_s, clock._LATE_WARMUP + 2), lambda k: late_s)
             return waiter.spin_window_s
+        finally:
+            _close(waiter)
 
-    async def started_at(period: float) -> tuple[float, int]:
-        with DeadlineWaiter(precise=True) as waiter:
+    def started_at(period: float) -> tuple[float, int]:
+        waiter = _unrun_precise_waiter()
+        try:
             waiter.call_at(time.monotonic() + 60, lambda: None, period=period)  # never due: only arms
             started = waiter.spin_window_s, len(waiter._late)
             waiter.cancel_call()
             return started
+        finally:
+            _close(waiter)
 
-    async def main() -> None:
-        await learn(0.006)  # deadlines about 6 ms apart, then about 1 ms apart
-        fast = await learn(0.0011)
-        slow_class, fast_class = clock._period_class(0.006), clock._period_class(0.0011)
-        assert slow_class != fast_class
-        # what each rate learned from is kept under its class (the odd offsets of the waits move some gaps a
-        # class down; a refresh is stored under the class of the gap it came at)
-        assert len(clock._learned[slow_class].late) >= clock._LATE_WARMUP
-        assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
-        # pretend the two rates woke differently late, so which one a new waiter starts from shows
-        clock._learned[slow_class] = clock._Learned(array("d", [300e-6] * 200), True, array("d"))
-        clock._learned[fast_class] = clock._Learned(array("d", [100e-6] * 200), True, array("d"))
-        assert await started_at(0.006) == (pytest.approx(300e-6 - clock.PRECISE_TOLERANCE_S), 200)
-        assert await started_at(0.0011) == (pytest.approx(100e-6 - clock.PRECISE_TOLERANCE_S), 200)
-        unknown = clock._period_class(0.5)
-        assert unknown not in clock._learned
-        assert await started_at(0.5) == (clock._learned_window_s, 0)  # nothing for that rate: the last window
-
-    run_on(uvloop.new_event_loop, main())
+    slow = learn(0.006, 150e-6)  # deadlines 6 ms apart, then 1.1 ms apart
+    fast = learn(0.0011, 60e-6)
+    assert (slow, fast) == (pytest.approx(130e-6), pytest.approx(40e-6))
+    slow_class, fast_class = clock._period_class(0.006), clock._period_class(0.0011)
+    assert slow_class != fast_class
+    # what each rate learned from is kept under its class
+    assert list(clock._learned[slow_class].late) == [150e-6] * clock._LATE_WARMUP
+    assert list(clock._learned[fast_class].late) == [60e-6] * clock._LATE_WARMUP
+    assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
+    # pretend the two rates woke differently late, so which one a new waiter starts from shows
+    clock._learned[slow_class] = clock._Learned(array("d", [300e-6] * 200), True, array("d"))
+    clock._learned[fast_class] = clock._Learned(array("d", [100e-6] * 200), True, array("d"))
+    assert started_at(0.006) == (pytest.approx(300e-6 - clock.PRECISE_TOLERANCE_S), 200)
+    assert started_at(0.0011) == (pytest.approx(100e-6 - clock.PRECISE_TOLERANCE_S), 200)
+    unknown = clock._period_class(0.5)
+    assert unknown not in clock._learned
+    assert started_at(0.5) == (clock._learned_window_s, 0)  # nothing for that rate: the last window
 
 
 def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(monkeypatch):
@@ -644,20 +703,19 @@ def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(m
 
 def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
     monkeypatch.setattr(clock, "_learned", {})
-
-    async def main() -> tuple[float, float]:
-        with DeadlineWaiter(precise=True) as waiter:
-            await _lateness_of_waits(waiter, clock._LATE_WARMUP + 2, 0.0021)
-            own = waiter.spin_window_s
-            another_rate = clock._Learned(array("d", [own + 0.000_2] * 200), waiter._two_stage, array("d"))
-            clock._learned[clock._period_class(0.04)] = another_rate
-            t = time.monotonic()
-            for k in (1, 2):  # two deadlines 40 ms apart: a new class
-                await waiter.wait_until(t + 0.04 * k)
-            return own, waiter.spin_window_s
-
-    own, after = run_on(uvloop.new_event_loop, main())
-    assert after == own
+    waiter = _unrun_precise_waiter()
+    try:
+        deadlines = _every(0.0021, clock._LATE_WARMUP + 2)
+        _teach(waiter, deadlines, _lateness)
+        own = waiter.spin_window_s
+        assert own == pytest.approx(95e-6 - clock.PRECISE_TOLERANCE_S)  # learned from its own wake-ups
+        another_rate = clock._Learned(array("d", [own + 0.000_2] * 200), waiter._two_stage, array("d"))
+        clock._learned[clock._period_class(0.04)] = another_rate
+        _teach(waiter, _every(0.04, 2, after=deadlines[-1]), _lateness)  # two deadlines 40 ms apart: a new class
+        assert waiter._period_class == clock._period_class(0.04)
+        assert waiter.spin_window_s == own
+    finally:
+        _close(waiter)
 
 
 def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice_where_it_is_long(monkeypatch):

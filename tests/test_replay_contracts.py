@@ -28,7 +28,8 @@ from asyncdonkey.parts.mcap.reader import McapTub, read_mcap
 from asyncdonkey.parts.tub import Tub
 from asyncdonkey.replay import replay
 from asyncdonkey.testing import VirtualClockLoop
-from test_replay import INPUTS, record_tub
+
+from .test_replay import INPUTS, record_tub
 
 HUGE = 10**400
 

@@ -48,6 +48,6 @@ def _tests_in(module) -> set[str]:
 def test_every_donkeycar_test_is_collected(name):
     theirs = _tests_in(importlib.import_module(f"donkeycar.tests.{name}"))
     assert theirs, f"no tests found in donkeycar.tests.{name}"
-    # the wrapper beside this file (its directory is on sys.path: pytest's default import mode)
-    wrapper = importlib.import_module(f"test_donkeycar_{name.removeprefix('test_')}")
+    # the wrapper beside this file, in the same package
+    wrapper = importlib.import_module(f".test_donkeycar_{name.removeprefix('test_')}", __package__)
     assert theirs <= _tests_in(wrapper), f"missing from {wrapper.__name__}: {sorted(theirs - _tests_in(wrapper))}"

@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 
 import pytest
-from zenoh_loopback import connector, free_port, listener
 
 from asyncdonkey.parts.zenoh import ZenohLink
+
+from .zenoh_loopback import connector, free_port, listener
 
 
 @pytest.fixture

@@ -14,13 +14,14 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from zenoh_loopback import PulseProbe, until
 
 from asyncdonkey import Contract, Contracts, Vehicle
 from asyncdonkey.parts.actuators import PWMThrottle
 from asyncdonkey.parts.zenoh import ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import JSON, encode, pack_attachment
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+from .zenoh_loopback import PulseProbe, until
 
 pytestmark = pytest.mark.network
 

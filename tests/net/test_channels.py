@@ -7,12 +7,13 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from zenoh_loopback import RemotePilotCar, until
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import pack_attachment
 from asyncdonkey.parts.zenoh.parts import covering_key
+
+from .zenoh_loopback import RemotePilotCar, until
 
 
 @pytest.mark.asyncio

@@ -11,11 +11,12 @@ import time
 
 import pytest
 import zenoh
-from zenoh_loopback import until
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import GROUP, CodecError, decode_group, encode_group, pack_attachment
+
+from .zenoh_loopback import until
 
 pytestmark = pytest.mark.network
 

@@ -6,11 +6,12 @@ import json
 import types
 
 import pytest
-from zenoh_loopback import free_port, listener, until
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import ZenohLink, zenoh_config
 from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher, render_fleet, top_main
+
+from .zenoh_loopback import free_port, listener, until
 
 
 class Busy:

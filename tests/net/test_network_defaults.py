@@ -11,7 +11,6 @@ import re
 from pathlib import Path
 
 import pytest
-from zenoh_loopback import free_port, listener
 
 from asyncdonkey.parts.zenoh import (
     COMMAND_CHANNELS,
@@ -24,6 +23,8 @@ from asyncdonkey.parts.zenoh import (
 )
 from asyncdonkey.parts.zenoh.link import LOOPBACK_LISTEN, exposure
 from asyncdonkey.parts.zenoh.pairing import make_pair
+
+from .zenoh_loopback import free_port, listener
 
 pytestmark = pytest.mark.network
 

@@ -12,11 +12,12 @@ from collections.abc import Iterator
 
 import pytest
 import zenoh
-from zenoh_loopback import RemotePilotCar, connector, free_port, until
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher
+
+from .zenoh_loopback import RemotePilotCar, connector, free_port, until
 
 
 class Router:

@@ -13,12 +13,13 @@ import time
 from collections.abc import Callable
 
 import pytest
-from zenoh_loopback import free_port, until
 
 from asyncdonkey.cli import main
 from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 from asyncdonkey.parts.zenoh.link import exposure, link_config
 from asyncdonkey.parts.zenoh.pairing import make_pair
+
+from .zenoh_loopback import free_port, until
 
 CMD = ["pilot/angle", "pilot/throttle"]
 

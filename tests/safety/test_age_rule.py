@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from rig import HALF, NEUTRAL, Rig
-from test_provenance import Pilot, Record, Seq, _make_drive_mode
 
 from asyncdonkey import Vehicle
 from asyncdonkey.testing import VirtualClockLoop
+
+from .rig import HALF, NEUTRAL, Rig
+from .test_provenance import Pilot, Record, Seq, _make_drive_mode
 
 RATE = 20
 PERIOD = 1 / RATE

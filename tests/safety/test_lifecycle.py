@@ -8,12 +8,13 @@ import threading
 import time
 
 import pytest
-from rig import HALF, NEUTRAL, Const, Rig
 
 from asyncdonkey import PartError, Vehicle
 from asyncdonkey.errors import PartTimeoutError
 from asyncdonkey.loop import run_blocking
 from asyncdonkey.profiler import Series
+
+from .rig import HALF, NEUTRAL, Const, Rig
 
 
 class Count:

@@ -9,10 +9,11 @@ import math
 from pathlib import Path
 
 import pytest
-from rig import HALF, NEUTRAL, Rig
 
 from asyncdonkey import Memory, Vehicle
 from asyncdonkey.parts.control import DriveMode, PilotCondition
+
+from .rig import HALF, NEUTRAL, Rig
 
 RATE = 20
 PERIOD = 1 / RATE

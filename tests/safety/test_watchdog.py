@@ -8,10 +8,11 @@ import logging
 import time
 
 import pytest
-from rig import HALF, NEUTRAL, Const, Rig
 
 from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
+
+from .rig import HALF, NEUTRAL, Const, Rig
 
 WINDOW = 0.25
 SLACK = 0.15

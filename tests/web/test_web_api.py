@@ -9,10 +9,11 @@ import aiohttp
 import cv2
 import numpy as np
 import pytest
-from web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
 from asyncdonkey import PartError
 from asyncdonkey.parts.web.video import CONTENT_TYPE
+
+from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
 
 async def next_json(ws: aiohttp.ClientWebSocketResponse, key: str, timeout: float = 5.0) -> dict:

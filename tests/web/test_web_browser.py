@@ -12,7 +12,8 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from web_rig import ZERO_PULSE, CarThread, WebCar, wait_until
+
+from .web_rig import ZERO_PULSE, CarThread, WebCar, wait_until
 
 
 @pytest.fixture(scope="module")

@@ -19,10 +19,11 @@ from typing import Any
 
 import aiohttp
 import pytest
-from web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
 from asyncdonkey.parts.web import WebConfigError, WebController
 from asyncdonkey.parts.web.guard import DEFAULT_HEADER_TIMEOUT_S, ConnectionGuard, FdBudget
+
+from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
 HEADER_TIMEOUT_S = DEFAULT_HEADER_TIMEOUT_S
 

@@ -15,7 +15,8 @@ import time
 
 import aiohttp
 import pytest
-from web_rig import ZERO_PULSE, WebCar, auth, await_until, driving
+
+from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving
 
 pytestmark = [pytest.mark.network]
 

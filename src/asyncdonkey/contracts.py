@@ -256,84 +256,96 @@ def _fail(reason: str, detail: str) -> ContractViolation:
 
 def _compile(c: Contract) -> Check:
     """The contract's check as one closure, decided once: the common case is a type test and a comparison."""
-    k = c.kind
-    if k is Kind.FLOAT:
-        lo = -math.inf if c.low is None else c.low
-        hi = math.inf if c.high is None else c.high
+    return _BUILDERS[c.kind](c)
 
-        def check_float(v: Any) -> Any:
-            if v.__class__ is float and lo <= v <= hi:
-                return v
-            if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise _fail("type", f"got {_typed(v)}, not a number")
-            try:
-                f = float(v)
-            except (OverflowError, ValueError):
-                raise _fail("range", f"{_short(v)} is too large for a float") from None
-            if f != f:
-                raise _fail("nan", "got NaN")
-            if f in (math.inf, -math.inf):
-                raise _fail("inf", f"got {f}")
-            if not lo <= f <= hi:
-                raise _fail("range", f"{_short(v)} is outside [{lo:g}, {hi:g}]")
-            return f
 
-        return check_float
-    if k is Kind.INT:
-        ilo, ihi = c.low, c.high
+def _float_check(c: Contract) -> Check:
+    lo = -math.inf if c.low is None else c.low
+    hi = math.inf if c.high is None else c.high
 
-        def check_int(v: Any) -> Any:
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise _fail("type", f"got {_typed(v)}, not an integer")
-            i = int(v)
-            if (ilo is not None and i < ilo) or (ihi is not None and i > ihi):
-                raise _fail("range", f"{_short(v)} is outside [{ilo}, {ihi}]")
-            return i
-
-        return check_int
-    if k is Kind.BOOL:
-
-        def check_bool(v: Any) -> Any:
-            if v is True or v is False:
-                return v
-            if isinstance(v, np.bool_):
-                return bool(v)
-            raise _fail("type", f"got {_typed(v)}, not true or false")
-
-        return check_bool
-    if k is Kind.ENUM:
-        choices = c.choices or frozenset()
-
-        def check_enum(v: Any) -> Any:
-            if v.__class__ is str and v in choices:
-                return v
-            if not isinstance(v, str):
-                raise _fail("type", f"got {_typed(v)}, not a string")
-            raise _fail("choice", f"{_short(v)} is not one of {sorted(choices)}")
-
-        return check_enum
-    if k is Kind.ARRAY:
-        dtype = np.dtype(c.dtype)
-        max_len = c.max_len
-        shape_ok = None if c.shape is None else _shape_test(c.shape)
-        floats = dtype.kind in "fc"
-
-        def check_array(v: Any) -> Any:
-            if not isinstance(v, np.ndarray):
-                raise _fail("type", f"got {_typed(v)}, not an array")
-            if v.dtype is not dtype and v.dtype != dtype:
-                raise _fail("dtype", f"got an array of dtype {v.dtype}")
-            if shape_ok is not None and not shape_ok(v.shape):
-                raise _fail("shape", f"got an array of shape {v.shape}")
-            if max_len is not None and v.size > max_len:
-                raise _fail("size", f"{v.size} elements, more than {max_len}")
-            if floats and not np.isfinite(v).all():
-                raise _fail("nan", "the array holds NaN or inf")
+    def check_float(v: Any) -> Any:
+        if v.__class__ is float and lo <= v <= hi:
             return v
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            raise _fail("type", f"got {_typed(v)}, not a number")
+        try:
+            f = float(v)
+        except (OverflowError, ValueError):
+            raise _fail("range", f"{_short(v)} is too large for a float") from None
+        if f != f:
+            raise _fail("nan", "got NaN")
+        if f in (math.inf, -math.inf):
+            raise _fail("inf", f"got {f}")
+        if not lo <= f <= hi:
+            raise _fail("range", f"{_short(v)} is outside [{lo:g}, {hi:g}]")
+        return f
 
-        return check_array
+    return check_float
+
+
+def _int_check(c: Contract) -> Check:
+    lo, hi = c.low, c.high
+
+    def check_int(v: Any) -> Any:
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+            raise _fail("type", f"got {_typed(v)}, not an integer")
+        i = int(v)
+        if (lo is not None and i < lo) or (hi is not None and i > hi):
+            raise _fail("range", f"{_short(v)} is outside [{lo}, {hi}]")
+        return i
+
+    return check_int
+
+
+def _bool_check(c: Contract) -> Check:
+    def check_bool(v: Any) -> Any:
+        if v is True or v is False:
+            return v
+        if isinstance(v, np.bool_):
+            return bool(v)
+        raise _fail("type", f"got {_typed(v)}, not true or false")
+
+    return check_bool
+
+
+def _enum_check(c: Contract) -> Check:
+    choices = c.choices or frozenset()
+
+    def check_enum(v: Any) -> Any:
+        if v.__class__ is str and v in choices:
+            return v
+        if not isinstance(v, str):
+            raise _fail("type", f"got {_typed(v)}, not a string")
+        raise _fail("choice", f"{_short(v)} is not one of {sorted(choices)}")
+
+    return check_enum
+
+
+def _array_check(c: Contract) -> Check:
+    dtype = np.dtype(c.dtype)
+    max_len = c.max_len
+    shape_ok = None if c.shape is None else _shape_test(c.shape)
+    floats = dtype.kind in "fc"
+
+    def check_array(v: Any) -> Any:
+        if not isinstance(v, np.ndarray):
+            raise _fail("type", f"got {_typed(v)}, not an array")
+        if v.dtype is not dtype and v.dtype != dtype:
+            raise _fail("dtype", f"got an array of dtype {v.dtype}")
+        if shape_ok is not None and not shape_ok(v.shape):
+            raise _fail("shape", f"got an array of shape {v.shape}")
+        if max_len is not None and v.size > max_len:
+            raise _fail("size", f"{v.size} elements, more than {max_len}")
+        if floats and not np.isfinite(v).all():
+            raise _fail("nan", "the array holds NaN or inf")
+        return v
+
+    return check_array
+
+
+def _bytes_check(c: Contract) -> Check:
     blen = c.max_len if c.max_len is not None else 1 << 62
-    jpeg = k is Kind.JPEG
+    jpeg = c.kind is Kind.JPEG
 
     def check_bytes(v: Any) -> Any:
         if isinstance(v, bytearray | memoryview):
@@ -347,6 +359,17 @@ def _compile(c: Contract) -> Check:
         return v
 
     return check_bytes
+
+
+_BUILDERS: dict[Kind, Callable[[Contract], Check]] = {
+    Kind.FLOAT: _float_check,
+    Kind.INT: _int_check,
+    Kind.BOOL: _bool_check,
+    Kind.ENUM: _enum_check,
+    Kind.ARRAY: _array_check,
+    Kind.BYTES: _bytes_check,
+    Kind.JPEG: _bytes_check,
+}
 
 
 #: Donkeycar's drive modes (the web page, the gamepad and DriveMode speak these)

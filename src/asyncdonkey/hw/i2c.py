@@ -191,9 +191,10 @@ class I2CBus:
 
         The safety process (``asyncdonkey.safety``) writes actuators' safe states through its own handle, so that
         nothing in the car's process (its GIL, its locks, its death) stands between it and the chip. A real bus
-        is ``{"path": "/dev/i2c-N"}``; a simulated bus can be reached from another process only when its
-        simulator is served (:meth:`asyncdonkey.testing.i2c_models.I2CSimulator.serve`), and then it is
-        ``{"simulator": endpoint, "bus": N}``. Any other factory (an in-process fake) has no such path.
+        is ``{"path": "/dev/i2c-N"}``. Any other factory may say how another process opens the same bus: an
+        object (or the owner of a bound method) with ``cross_process_opener(bus_number)`` returning
+        ``{"opener": "module:function", "args": [...]}`` (a served simulator,
+        :meth:`asyncdonkey.testing.i2c_models.I2CSimulator.serve`); an in-process fake has no such path.
         """
         factory = self._factory
         import smbus2
@@ -201,10 +202,9 @@ class I2CBus:
         if factory is smbus2.SMBus:
             return {"path": f"/dev/i2c-{self.bus_number}"}
         owner = getattr(factory, "__self__", factory)
-        endpoint = getattr(owner, "endpoint", None)
-        if isinstance(endpoint, str):
-            return {"simulator": endpoint, "bus": self.bus_number}
-        return None
+        opener = getattr(owner, "cross_process_opener", None)
+        spec = opener(self.bus_number) if callable(opener) else None
+        return spec if isinstance(spec, dict) else None
 
     def shared(self, key: Any, create: Callable[[], T]) -> T:
         """The one object for ``key`` on this bus, made by ``create()`` the first time.

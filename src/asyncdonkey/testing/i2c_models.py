@@ -568,6 +568,12 @@ class I2CSimulator:
         """An :class:`~asyncdonkey.hw.i2c.I2CBusRegistry` whose buses are these simulated ones."""
         return I2CBusRegistry(smbus_factory=self.smbus, **bus_kwargs)
 
+    def cross_process_opener(self, bus: int) -> dict[str, Any] | None:
+        """How another process opens bus ``bus`` of this simulator: only once it is served."""
+        if self.endpoint is None:
+            return None
+        return {"opener": f"{__name__}:open_served_smbus", "args": [self.endpoint, bus]}
+
     def serve(self, path: str | None = None) -> str:
         """Serve these buses on a Unix socket (a fresh temporary one unless ``path``); returns its path.
 
@@ -747,6 +753,16 @@ class RemoteI2CSimulator:
 
     def registry(self, **bus_kwargs: Any) -> I2CBusRegistry:
         return I2CBusRegistry(smbus_factory=self.smbus, **bus_kwargs)
+
+    def cross_process_opener(self, bus: int) -> dict[str, Any]:
+        """Another process opens the same served buses the same way."""
+        return {"opener": f"{__name__}:open_served_smbus", "args": [self.endpoint, bus]}
+
+
+def open_served_smbus(endpoint: str, bus: int) -> SimulatedSMBus:
+    """Bus ``bus`` of the simulator served at ``endpoint``, through smbus2's own code (the safety process's opener
+    in tests)."""
+    return RemoteI2CSimulator(endpoint).smbus(int(bus))
 
 
 # ------------------------------------------------------------------------ the simulated i2c-dev driver

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from .clock import _TICK_GRID, SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
 from .errors import PartError
 from .memory import Memory
-from .pipeline import Reaction, after_store, build_pipelines
+from .pipeline import Guard, Reaction, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
 from .ratelimit import LogThrottle
@@ -111,11 +111,14 @@ class Drive:
         self._unsubscribe: list[Any] = []
         #: checked mode: each wrapped entry's own stores, put back when the drive ends (:meth:`uncheck_outputs`)
         self._plain_stores: list[tuple[Entry, Any, Any]] = []
+        #: the parts more than one path can be inside at once, each kept to one call at a time (asyncdonkey.pipeline)
+        self.guards: list[Guard] = []
         self.tick_entries, self.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
         self.table = table = TickTable(len(self.tick_entries), 1.0 / report.rate_hz, profiler.window)
         profiler.use_table(table)
-        column = {id(e): col for col, e in enumerate(self.tick_entries)}
+        # a guarded part sits in the tick as its GuardedTick: its column is found through the GuardedTick's entry
+        column = {id(getattr(e, "entry", e)): col for col, e in enumerate(self.tick_entries)}
         for e in entries:
             e.errors = 0
             if e.pipelined:
@@ -572,6 +575,8 @@ class Drive:
             r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
         r.shutdown_abandoned = list(self.abandoned)
         r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
+        r.reentries_avoided = {g.name: g.stats() for g in self.guards}
+        r.pushed = {e.name: reaction.stats() for e, _sub, reaction in self.push_sources if reaction is not None}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
         if self.waiter.precise:  # the window as armed: at most its budget of the period
             window = self.waiter.spin_window_s

@@ -79,6 +79,13 @@ class DriveReport:
             was left running on a daemon thread.
         pipelined: per pipelined part, ``runs``, ``published``, its own ``rate_hz`` and ``superseded`` (start
             requests replaced by a newer one while it was busy: frames it never saw).
+        reentries_avoided: per part that more than one path can be inside at once (see
+            :mod:`asyncdonkey.pipeline`: a ``react=True`` part that awaits, an executor part with a timeout), the
+            calls that found it still running: ``waited`` (waited for that call to end, then ran it with the inputs
+            as they were then) and ``coalesced`` (another call was already waiting: served by that one's run, on
+            inputs at least as new; newest wins). A part is never entered twice at once.
+        pushed: per push source feeding ``react=True`` parts, ``reactions`` (runs of those parts) and
+            ``superseded`` (pushes replaced by a newer one while the reactions to an earlier one still ran).
         stop_reason: ``"max_loop_count"``, ``"duration"``, ``"stop()"``, ``"cancelled"``, ``"error"`` or the
             name of the signal that stopped the car.
         spin_window_ms: in precise mode, the spin window at the end of the drive (learned from the machine's
@@ -107,6 +114,8 @@ class DriveReport:
     longest_block_ms: tuple[float, str] | None = None
     shutdown_abandoned: list[str] = field(default_factory=list)
     pipelined: dict[str, dict[str, float]] = field(default_factory=dict)
+    reentries_avoided: dict[str, dict[str, int]] = field(default_factory=dict)
+    pushed: dict[str, dict[str, int]] = field(default_factory=dict)
     stop_reason: str = ""
     spin_window_ms: float | None = None
     precise_sleeps: int | None = None
@@ -522,6 +531,17 @@ class Vehicle:
                     f"{p['superseded']} starts superseded while it was busy",
                 )
             )
+        for name, g in report.reentries_avoided.items():
+            if g["waited"] or g["coalesced"]:
+                rows.append(
+                    (
+                        f"one call at a time ({name})",
+                        f"{g['waited']} calls waited for its running call, {g['coalesced']} served by a newer one",
+                    )
+                )
+        for name, p in report.pushed.items():
+            if p["superseded"]:
+                rows.append((f"pushed {name}", f"{p['superseded']} pushes superseded while their reactions ran"))
         if report.part_errors:
             rows.append(("part errors", ", ".join(f"{k}: {v}" for k, v in report.part_errors.items())))
         if report.watchdog_events:

@@ -21,21 +21,49 @@ behind. Parts added with ``react=True`` downstream of it (``DriveMode``, the act
 source (a command received from the network), also run the moment it publishes, so a new command reaches the
 output without waiting for the next tick.
 
+**One call at a time.** A part is never entered while it is still running, whatever path calls it: the tick, a
+pipelined part's worker, the reactions to a pipelined part or to a push source (a push itself calls no part: it
+stores the source's value and starts the reactions). Only a part that yields while it runs can be caught inside
+its call (an ``async run()``, or a sync one in a worker thread: ``executor=True`` or pipelined), so the drive
+decides when it starts which entries need a :class:`Guard`: a ``react=True`` part that awaits and that a
+pipelined part or a push source feeds (the tick and its reactions can both call it), and an executor part with a
+``timeout`` (a call that times out leaves its thread running). The others, a sync part on the loop thread above
+all, run as before: the tick does nothing more for them. A call that finds its part busy is never lost and never
+queued behind old ones; newest wins:
+
+* the first to find it busy **waits** for the running call to end, then runs it with the inputs as they are
+  then (the tick included: so the tick keeps its order and its later parts see this part's outputs);
+* any that arrive while one is already waiting are **coalesced** into it: that run reads inputs at least as new
+  as theirs, and they wait for it to end (so their own later parts see its outputs too) without running again;
+* a wait is bounded by the part's ``timeout`` when it has one (a thread left running by a timed-out call may
+  never end): the waiting call then fails with :class:`~asyncdonkey.errors.PartTimeoutError`, as a call that
+  did not return in time does.
+
+Nothing waits for a call while holding another part, so the waits cannot deadlock. Each guarded part's
+``waited`` and ``coalesced`` counts are in ``DriveReport.reentries_avoided``; a push that comes while the
+reactions to the previous one still run is superseded by the next (counted in ``DriveReport.pushed``), as a
+pipelined part's starts are (``DriveReport.pipelined``).
+
 What each mode keeps and loses is in ``docs/control-periods.md``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
-from collections.abc import Callable
+import threading
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
+
+from .errors import PartTimeoutError
+from .plan import with_timeout
 
 if TYPE_CHECKING:
     from .drive import Drive
     from .plan import Entry
 
-__all__ = ["Pipeline", "TickKicker", "build_pipelines"]
+__all__ = ["Guard", "GuardedTick", "Pipeline", "TickKicker", "build_pipelines", "needs_guard"]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
@@ -96,20 +124,9 @@ class Pipeline:
             self.last_start = t
             self.runs += 1
             try:
-                args = e.args()
-                origin = e.input_origin() if e.input_origin is not None else t
-                r = e.call(*args)
-                if e.awaits:
-                    r = await r
-                t_end = now()
-                if r is not None and e.store_fixed is not None:
-                    if stated is not None:
-                        o = stated()
-                        origin = origin if o is None else o
-                    e.store_fixed(r, origin, t_end)
-                    self.published += 1
-                    if self.react:
-                        await self._react(t_end)
+                t_end, published = await self._run_once(t, stated)
+                if published and self.react:
+                    await self._react(t_end)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
@@ -118,6 +135,32 @@ class Pipeline:
             finally:
                 self.busy = False
             series.record(t_end - t)
+
+    async def _run_once(self, t: float, stated: Callable[[], float | None] | None) -> tuple[float, bool]:
+        """One run on the newest inputs: ``(its end, whether it published)``. A guarded part (an executor part with
+        a timeout) is entered through its guard first: a thread its last call's timeout left running keeps it."""
+        e = self.entry
+        guard = e.guard
+        if guard is not None and not await guard.enter():
+            return self.drive.clock.now(), False  # (only this worker calls it: never coalesced)
+        try:
+            args = e.args()
+            origin = e.input_origin() if e.input_origin is not None else t
+            r = e.call(*args) if guard is None else guard.call(*args)
+            if e.awaits:
+                r = await r
+            t_end = self.drive.clock.now()
+            if r is None or e.store_fixed is None:
+                return t_end, False
+            if stated is not None:
+                o = stated()
+                origin = origin if o is None else o
+            e.store_fixed(r, origin, t_end)
+            self.published += 1
+            return t_end, True
+        finally:
+            if guard is not None:
+                guard.leave()
 
     async def _react(self, t: float) -> None:
         await run_reactions(self.drive, self.react, self._failed)
@@ -144,14 +187,20 @@ async def run_reactions(drive: Drive, entries: list[Entry], failed: Callable[[En
         cond = e.run_condition
         if cond is not None and not d.get(cond):
             continue
+        guard = e.guard
         try:
-            args = e.args()
-            r = e.call(*args)
-            if e.awaits:
-                r = await r
-            t_end = now()
-            if r is not None and e.store is not None:
-                e.store(r, args, t_end)
+            if guard is not None:  # the tick or another reaction may be inside its call: one call at a time
+                t_end = await guard.run_stored()
+                if t_end is None:
+                    continue  # coalesced: a run that started after this request has just ended
+            else:
+                args = e.args()
+                r = e.call(*args)
+                if e.awaits:
+                    r = await r
+                t_end = now()
+                if r is not None and e.store is not None:
+                    e.store(r, args, t_end)
             if e.latency is not None:
                 e.latency(t_end)
         except asyncio.CancelledError:
@@ -169,10 +218,16 @@ class Reaction:
         self.entries = entries
         self._kick = asyncio.Event()
         self.runs = 0
+        self.superseded = 0
         self.task: asyncio.Task[None] | None = None
 
     def kick(self) -> None:
+        if self._kick.is_set():
+            self.superseded += 1  # the push still waiting for its reactions is replaced by this newer one
         self._kick.set()
+
+    def stats(self) -> dict[str, int]:
+        return {"reactions": self.runs, "superseded": self.superseded}
 
     async def main(self) -> None:
         drive = self.drive
@@ -241,6 +296,266 @@ def _nothing() -> None:
     return None
 
 
+# ------------------------------------------------------------------------------------ one call at a time
+def needs_guard(e: Entry, reacting: set[int]) -> bool:
+    """Whether two calls of ``e`` could be inside it at once (``reacting``: ids of the entries some reaction runs).
+
+    Only a call that yields can be caught inside: an awaited one (``async run()``, or a sync one in a worker
+    thread). So: an awaited part that reactions run besides the tick, and an executor part with a timeout, whose
+    call, timed out, leaves its thread running while the next one comes. A sync part on the loop thread runs to its
+    end before anything else can call it, and a pipelined part is only called by its own worker, one run after the
+    other: neither needs one (unless its thread can outlive a timeout).
+    """
+    if e.awaits and id(e) in reacting:
+        return True
+    return e.executor and e.timeout is not None
+
+
+class Guard:
+    """Keeps one part from being entered while it is still running, for every path that calls it.
+
+    A path calls :meth:`enter` before reading the part's inputs and :meth:`leave` after storing its outputs, and
+    calls it through :attr:`call` (an executor part's calls are offloaded here, so that the part stays busy until
+    its thread has really ended, not only until its caller stopped waiting). What a path that finds it busy
+    does (wait, or be coalesced into the one already waiting; newest wins) is in the module docstring.
+    """
+
+    __slots__ = (
+        "_holds",
+        "_idle",
+        "_loop",
+        "_next",
+        "_now",
+        "_origins",
+        "_serving",
+        "_timeout",
+        "busy",
+        "call",
+        "coalesced",
+        "entry",
+        "name",
+        "waited",
+    )
+
+    def __init__(self, drive: Drive, entry: Entry) -> None:
+        self.entry = entry
+        self.name = entry.name
+        self.busy = False
+        #: calls that found it running and waited for that call to end, then ran it
+        self.waited = 0
+        #: calls that found it running with another already waiting, and were served by that one's run
+        self.coalesced = 0
+        #: what keeps it busy: the path inside it, and a worker thread still running its call
+        self._holds = 0
+        self._idle: asyncio.Future[None] | None = None  # done when it is let go: wakes the waiting call
+        self._next: asyncio.Future[bool] | None = None  # the waiting call's: True once it has run, False if it gave up
+        self._serving: asyncio.Future[bool] | None = None  # the running call's own, when it had waited
+        self._loop = drive.loop
+        self._now = drive.clock.now
+        self._origins = drive.mem.origins
+        self._timeout = entry.timeout
+        self.call: Callable[..., Awaitable[Any]] = self._thread_call(drive) if entry.executor else entry.call
+
+    # -------------------------------------------------------------------------------------- entering
+    async def enter(self) -> bool:
+        """Take the part. ``True``: this caller runs it now, then calls :meth:`leave`; ``False``: this request was
+        coalesced into a waiting one, which has run the part since, on inputs at least as new as this one's."""
+        if not self.busy and self._next is None:
+            self.busy = True
+            self._holds = 1
+            return True
+        return await self._when_busy()
+
+    async def _when_busy(self) -> bool:
+        """Wait for the running call and take the part, or, if a call already waits, be served by its run. A loop:
+        the call this one was coalesced into may give up (cancelled at the drive's end) before it ran."""
+        counted = False
+        while True:
+            nxt = self._next
+            if nxt is None:
+                if not self.busy:  # the call it was coalesced into gave up (cancelled), and the part is free
+                    self.busy = True
+                    self._holds = 1
+                    return True
+                self.waited += 1
+                return await self._wait_then_take()
+            if not counted:
+                self.coalesced += 1
+                counted = True
+            if await asyncio.shield(nxt):
+                return False
+
+    async def _wait_then_take(self) -> bool:
+        nxt = self._next = self._loop.create_future()
+        try:
+            if self._timeout is None:
+                await self._until_free()
+            else:
+                try:
+                    async with asyncio.timeout(self._timeout):
+                        await self._until_free()
+                except TimeoutError:
+                    raise PartTimeoutError(
+                        f"was still running a call that began before this one's {self._timeout:g} s timeout"
+                    ) from None
+        except BaseException:
+            self._next = None
+            if not nxt.done():
+                nxt.set_result(False)  # the calls coalesced into this one try again
+            raise
+        self._next = None
+        self._serving = nxt
+        self.busy = True
+        self._holds = 1
+        return True
+
+    async def _until_free(self) -> None:
+        while self.busy:
+            idle = self._idle
+            if idle is None or idle.done():
+                idle = self._idle = self._loop.create_future()
+            await idle
+
+    # --------------------------------------------------------------------------------------- leaving
+    def leave(self) -> None:
+        """The path is done with the part (its outputs stored): the calls coalesced into this one are served."""
+        serving = self._serving
+        if serving is not None:
+            self._serving = None
+            if not serving.done():
+                serving.set_result(True)
+        self._let_go()
+
+    def _let_go(self) -> None:
+        self._holds -= 1
+        if self._holds:
+            return
+        self.busy = False
+        idle = self._idle
+        if idle is not None:
+            self._idle = None
+            if not idle.done():
+                idle.set_result(None)
+
+    # ------------------------------------------------------------------------------------------ calls
+    async def run_stored(self, kicks: bool = False) -> float | None:
+        """Enter, read the inputs as they are now, call, store the outputs (and with ``kicks``, start what they
+        trigger, as the tick does); the end time, or ``None`` when coalesced into a run that has just ended."""
+        if self.busy or self._next is not None:
+            if not await self._when_busy():
+                return None
+        else:  # enter()'s free case, inlined: this runs on every tick of a guarded part
+            self.busy = True
+            self._holds = 1
+        e = self.entry
+        try:
+            args = e.args()
+            r = await self.call(*args)
+            t_end = self._now()
+            if r is not None and e.store is not None:
+                e.store(r, args, t_end)
+                if kicks and e.kicks:
+                    after_store(e, self._origins)
+        finally:
+            self.leave()
+        return t_end
+
+    def _thread_call(self, drive: Drive) -> Callable[..., Awaitable[Any]]:
+        """The part's call in a worker thread, which keeps the part busy until the thread is done with it.
+
+        A caller that stops waiting (a timeout, a cancellation) does not stop the thread: the part is let go when
+        the thread returns, or at once if the call had not started (it then never will).
+        """
+        fn, loop, executor = self.entry.fn, self._loop, drive.get_executor
+        lock = threading.Lock()
+
+        def claimed(state: list[str], args: tuple[Any, ...]) -> Any:
+            with lock:
+                if state[0] != "queued":
+                    return None  # its caller gave up before it started
+                state[0] = "running"
+            try:
+                return fn(*args)
+            finally:
+                self._thread_ended()
+
+        claimed.__qualname__ = getattr(fn, "__qualname__", self.name)  # what the virtual clock names the job
+
+        def offloaded(*args: Any) -> asyncio.Future[Any]:
+            state = ["queued"]
+
+            def given_up(fut: asyncio.Future[Any]) -> None:
+                if fut.cancelled():
+                    with lock:
+                        if state[0] == "queued":
+                            state[0] = "abandoned"
+                            self._let_go()
+
+            fut = loop.run_in_executor(executor(), claimed, state, args)
+            self._holds += 1
+            fut.add_done_callback(given_up)
+            return fut
+
+        return with_timeout(offloaded, self._timeout, self.name) if self._timeout is not None else offloaded
+
+    def _thread_ended(self) -> None:
+        try:
+            self._loop.call_soon_threadsafe(self._let_go)
+        except RuntimeError:  # the loop has closed: the drive is over
+            pass
+
+    def stats(self) -> dict[str, int]:
+        return {"waited": self.waited, "coalesced": self.coalesced}
+
+
+class GuardedTick:
+    """What the tick calls in a guarded part's place: one awaitable that enters the part (waiting for a call from
+    another path to end), reads its inputs then, calls it and stores its outputs (so the tick stores nothing)."""
+
+    __slots__ = (
+        "args",
+        "awaits",
+        "call",
+        "entry",
+        "inputs",
+        "is_sync_inline",
+        "kicks",
+        "name",
+        "on_error",
+        "outputs",
+        "run_condition",
+        "store",
+        "timeout",
+    )
+
+    def __init__(self, guard: Guard) -> None:
+        e = self.entry = guard.entry
+        self.name = e.name
+        self.run_condition = e.run_condition
+        self.outputs = e.outputs
+        self.inputs = e.inputs
+        self.on_error = e.on_error
+        self.timeout = e.timeout
+        self.args = _no_args
+        self.call = functools.partial(guard.run_stored, True)  # with kicks, as the tick starts what its stores trigger
+        self.awaits = True
+        self.store = None
+        self.kicks = ()
+        self.is_sync_inline = False
+
+    @property
+    def latency(self) -> Callable[[float], None] | None:
+        return self.entry.latency  # attached to the entry once the drive has started
+
+    @property
+    def errors(self) -> int:
+        return self.entry.errors
+
+    @errors.setter
+    def errors(self, n: int) -> None:
+        self.entry.errors = n
+
+
 def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
     """The tick's entry list (pipelined parts replaced by their kickers) and the drive's pipelines.
 
@@ -276,7 +591,25 @@ def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
         chain = react_chain(entries, set(e.outputs))
         if fed or chain:
             drive.push_sources.append((e, sub, Reaction(drive, chain) if chain else None))
+    guard_entries(drive, tick, pipelines)
     return tuple(tick), pipelines
+
+
+def guard_entries(drive: Drive, tick: list[Any], pipelines: list[Pipeline]) -> None:
+    """Give each entry that needs one a fresh :class:`Guard` (every other entry ``None``), and put a
+    :class:`GuardedTick` in a guarded part's place in the tick."""
+    reacting = {id(r) for p in pipelines for r in p.react}
+    reacting.update(
+        id(r) for _e, _sub, reaction in drive.push_sources if reaction is not None for r in reaction.entries
+    )
+    drive.guards = []
+    for e in drive.entries:
+        e.guard = Guard(drive, e) if needs_guard(e, reacting) else None
+        if e.guard is not None:
+            drive.guards.append(e.guard)
+    for i, t in enumerate(tick):
+        if getattr(t, "guard", None) is not None:
+            tick[i] = GuardedTick(t.guard)
 
 
 def after_store(e: Any, origins: dict[str, float]) -> None:

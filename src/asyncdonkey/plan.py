@@ -94,6 +94,8 @@ class Entry:
         "call",
         "errors",
         "executor",
+        "fn",
+        "guard",
         "input_origin",
         "inputs",
         "is_sync_inline",
@@ -131,6 +133,9 @@ class Entry:
         #: with a given origin (the inputs may have moved on meanwhile)
         self.input_origin: Callable[[], float] | None = None
         self.store_fixed: Callable[[Any, float, float], None] | None = None
+        #: per run: the part's :class:`~asyncdonkey.pipeline.Guard` when more than one path can be inside its call
+        #: at once (decided when the drive starts, ``asyncdonkey.pipeline.needs_guard``), else ``None``
+        self.guard: Any = None
 
 
 def build_entry(
@@ -234,8 +239,9 @@ def build_entry(
     e.trigger = trigger
     e.react = react
     e.is_sync_inline = not awaits
+    e.fn = fn  # the part's own method: a guarded executor part's calls are offloaded by its guard, which sees them end
     call = offload(fn) if executor else fn
-    e.call = _with_timeout(call, e.timeout, name) if e.timeout is not None else call
+    e.call = with_timeout(call, e.timeout, name) if e.timeout is not None else call
     e.args = _arg_getter(mem, ins)
     origin_fn = getattr(part, "output_origin", None)
     e.store = _storer(mem, name, ins, outs, origin_fn if callable(origin_fn) else None)
@@ -688,7 +694,7 @@ def _violation(name: str, channel: str, contract: Contract, exc: ContractViolati
 
 
 # --------------------------------------------------------------------------------------------- helpers
-def _with_timeout(call: Callable[..., Any], timeout: float, name: str) -> Callable[..., Any]:
+def with_timeout(call: Callable[..., Any], timeout: float, name: str) -> Callable[..., Any]:
     """Wrap an awaited call so that it is cancelled after ``timeout`` seconds (a :class:`PartTimeoutError`)."""
 
     async def bounded(*args: Any) -> Any:

@@ -21,17 +21,16 @@ from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
 from .clock import _TICK_GRID, SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
-from .errors import PartError
+from .errors import PartError, PartInterrupted
 from .memory import Memory
 from .pipeline import Guard, Reaction, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
 from .ratelimit import LogThrottle
-from .signals import PartInterrupted
 
 if TYPE_CHECKING:
     from .contracts import Contracts
-    from .loop import DriveReport
+    from .drive_report import DriveReport
     from .safety.process import SafetyProcess
     from .watchdog import Watchdog
 

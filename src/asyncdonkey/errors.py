@@ -10,13 +10,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from .loop import DriveReport
+    from .drive_report import DriveReport
 
 __all__ = [
     "AsyncdonkeyError",
     "ChannelCountError",
     "OutputCountError",
     "PartError",
+    "PartInterrupted",
     "PartSpecError",
     "PartTimeoutError",
 ]
@@ -62,3 +63,11 @@ class PartError(AsyncdonkeyError, RuntimeError):
         self.part = part
         self.tick = tick
         self.report: DriveReport | None = None
+
+
+class PartInterrupted(BaseException):
+    """Raised inside a sync part that still held the loop thread after a stop request's grace.
+
+    A ``BaseException`` (like ``KeyboardInterrupt``), not an ``Exception``, so a part's ``except Exception``
+    does not swallow it; the drive loop catches it, counts it against the part and goes on stopping.
+    """

@@ -60,8 +60,8 @@ from .errors import PartTimeoutError
 from .plan import with_timeout
 
 if TYPE_CHECKING:
-    from .drive import Drive
     from .plan import Entry
+    from .runtypes import PipelineHost
 
 __all__ = ["Guard", "GuardedTick", "Pipeline", "TickKicker", "build_pipelines", "needs_guard"]
 
@@ -71,7 +71,7 @@ logger = logging.getLogger("asyncdonkey.loop")
 class Pipeline:
     """One pipelined part's worker task, its start requests and its counters."""
 
-    def __init__(self, drive: Drive, entry: Entry, react: list[Entry]) -> None:
+    def __init__(self, drive: PipelineHost, entry: Entry, react: list[Entry]) -> None:
         self.drive = drive
         self.entry = entry
         self.react = react
@@ -178,7 +178,7 @@ class Pipeline:
         }
 
 
-async def run_reactions(drive: Drive, entries: list[Entry], failed: Callable[[Entry, Exception], None]) -> None:
+async def run_reactions(drive: PipelineHost, entries: list[Entry], failed: Callable[[Entry, Exception], None]) -> None:
     """Run the ``react=True`` parts ``entries`` now, in their add() order (after a pipelined part or a push
     source published): a new command reaches the actuators without waiting for the next tick."""
     d = drive.mem.d
@@ -213,7 +213,7 @@ class Reaction:
     """The ``react=True`` parts downstream of a push source, run in a task of their own each time it pushes
     (a start requested while they run is served once more, with the newest values, never queued)."""
 
-    def __init__(self, drive: Drive, entries: list[Entry]) -> None:
+    def __init__(self, drive: PipelineHost, entries: list[Entry]) -> None:
         self.drive = drive
         self.entries = entries
         self._kick = asyncio.Event()
@@ -337,7 +337,7 @@ class Guard:
         "waited",
     )
 
-    def __init__(self, drive: Drive, entry: Entry) -> None:
+    def __init__(self, drive: PipelineHost, entry: Entry) -> None:
         self.entry = entry
         self.name = entry.name
         self.busy = False
@@ -460,7 +460,7 @@ class Guard:
             self.leave()
         return t_end
 
-    def _thread_call(self, drive: Drive) -> Callable[..., Awaitable[Any]]:
+    def _thread_call(self, drive: PipelineHost) -> Callable[..., Awaitable[Any]]:
         """The part's call in a worker thread, which keeps the part busy until the thread is done with it.
 
         A caller that stops waiting (a timeout, a cancellation) does not stop the thread: the part is let go when
@@ -556,7 +556,7 @@ class GuardedTick:
         self.entry.errors = n
 
 
-def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
+def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline]]:
     """The tick's entry list (pipelined parts replaced by their kickers) and the drive's pipelines.
 
     Also wires the triggers: entries whose outputs feed a trigger get ``kicks`` (checked after their store), and
@@ -595,7 +595,7 @@ def build_pipelines(drive: Drive) -> tuple[tuple[Any, ...], list[Pipeline]]:
     return tuple(tick), pipelines
 
 
-def guard_entries(drive: Drive, tick: list[Any], pipelines: list[Pipeline]) -> None:
+def guard_entries(drive: PipelineHost, tick: list[Any], pipelines: list[Pipeline]) -> None:
     """Give each entry that needs one a fresh :class:`Guard` (every other entry ``None``), and put a
     :class:`GuardedTick` in a guarded part's place in the tick."""
     reacting = {id(r) for p in pipelines for r in p.react}

@@ -25,8 +25,8 @@ from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
-    from .drive import Drive
     from .plan import Entry
+    from .runtypes import ShutdownScope
 
 __all__ = ["in_daemon_thread", "shutdown_drive"]
 
@@ -117,7 +117,7 @@ async def _phase(
     return cancelled
 
 
-async def shutdown_drive(drive: Drive) -> bool:
+async def shutdown_drive(drive: ShutdownScope) -> bool:
     """Shut every part of ``drive`` down exactly once (module docstring). Returns True if cancelled meanwhile."""
     loop = drive.loop
     entries = [e for e in drive.entries if e.shutdown_fn is not None]

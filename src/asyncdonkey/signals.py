@@ -29,9 +29,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
+from .errors import PartInterrupted
+
 if TYPE_CHECKING:
-    from .drive import Drive
-    from .loop import Vehicle
+    from .runtypes import LoopActivity, Stoppable
 
 __all__ = ["EXIT_INTERRUPTED", "PartInterrupted", "force_safe_exit", "stop_on_signals"]
 
@@ -40,15 +41,7 @@ logger = logging.getLogger("asyncdonkey.loop")
 EXIT_INTERRUPTED = 130
 
 
-class PartInterrupted(BaseException):
-    """Raised inside a sync part that still held the loop thread after a stop request's grace.
-
-    A ``BaseException`` (like ``KeyboardInterrupt``), not an ``Exception``, so a part's ``except Exception``
-    does not swallow it; the drive loop catches it, counts it against the part and goes on stopping.
-    """
-
-
-def force_safe_exit(drive: Drive | None, status: int = EXIT_INTERRUPTED, why: str = "") -> None:
+def force_safe_exit(drive: LoopActivity | None, status: int = EXIT_INTERRUPTED, why: str = "") -> None:
     """Put every actuator of ``drive`` in its safe state, flush the logs and exit the process now."""
     if drive is not None:
         for e in drive.entries:
@@ -69,7 +62,7 @@ def force_safe_exit(drive: Drive | None, status: int = EXIT_INTERRUPTED, why: st
 
 
 class _SignalStop:
-    def __init__(self, vehicle: Vehicle, shutdown_deadline_s: float) -> None:
+    def __init__(self, vehicle: Stoppable, shutdown_deadline_s: float) -> None:
         self.vehicle = vehicle
         self.shutdown_deadline_s = shutdown_deadline_s
         self.count = 0
@@ -78,7 +71,7 @@ class _SignalStop:
         self._main_ident = threading.main_thread().ident
 
     def handler(self, signum: int, frame: Any) -> None:
-        drive = self.vehicle._drive
+        drive = self.vehicle.drive
         pending = self._interrupt
         if pending is not None and drive is not None and drive.current is pending[0]:
             # our own re-delivery after the grace: interrupt the sync part that still holds the loop thread
@@ -97,7 +90,7 @@ class _SignalStop:
         self.vehicle.stop(name)
         threading.Thread(target=self._enforce, args=(drive,), name="asyncdonkey-stop", daemon=True).start()
 
-    def _enforce(self, drive: Drive | None) -> None:
+    def _enforce(self, drive: LoopActivity | None) -> None:
         """After the grace, interrupt a sync part still holding the loop; after the deadline, exit."""
         grace = drive.stop_grace_s if drive is not None else 1.0
         if self._done.wait(grace):
@@ -118,7 +111,7 @@ class _SignalStop:
 
 
 @contextmanager
-def stop_on_signals(vehicle: Vehicle, shutdown_deadline_s: float) -> Iterator[None]:
+def stop_on_signals(vehicle: Stoppable, shutdown_deadline_s: float) -> Iterator[None]:
     """Bind SIGINT and SIGTERM to the two-step stop for the duration (main thread only; else does nothing)."""
     if threading.current_thread() is not threading.main_thread():
         yield

@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, Any
 from .ratelimit import LogThrottle
 
 if TYPE_CHECKING:
-    from .drive import Drive
     from .plan import Entry
+    from .runtypes import LoopActivity
 
 __all__ = ["ActuatorRuntime", "Watchdog"]
 
@@ -98,7 +98,7 @@ class _Trip:
 class Watchdog:
     """One thread per drive on a real loop, watching every actuator that has a command deadline."""
 
-    def __init__(self, drive: Drive, actuators: list[Entry], now: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, drive: LoopActivity, actuators: list[Entry], now: Callable[[], float] = time.monotonic) -> None:
         self.drive = drive
         self.actuators = actuators
         self.now = now

@@ -277,41 +277,11 @@ class Vehicle:
 
         ``checked`` turns checked mode on or off for this drive (``None``: the vehicle's :attr:`checked`).
         """
-        if not (isinstance(rate_hz, int | float) and rate_hz > 0 and math.isfinite(rate_hz)):
-            raise ValueError(f"Vehicle.run: rate_hz must be a positive number, got {rate_hz!r}")
-        if max_loop_count is not None and (not isinstance(max_loop_count, int) or max_loop_count < 0):
-            raise ValueError(f"Vehicle.run: max_loop_count must be a non-negative int, got {max_loop_count!r}")
-        if duration is not None and not (isinstance(duration, int | float) and duration >= 0):
-            raise ValueError(f"Vehicle.run: duration must be a number of seconds >= 0, got {duration!r}")
-        if not (isinstance(stop_grace_s, int | float) and stop_grace_s > 0):
-            raise ValueError(f"Vehicle.run: stop_grace_s must be a positive number, got {stop_grace_s!r}")
-        if checked is not None and type(checked) is not bool:
-            raise ValueError(f"Vehicle.run: checked must be True, False or None, got {checked!r}")
+        _check_run_args(rate_hz, max_loop_count, duration, stop_grace_s, checked)
         if self._drive is not None:
             raise RuntimeError("Vehicle.run: this vehicle is already running")
-        loop = asyncio.get_running_loop()
-        clock = get_clock(loop)
-        self.mem.use_clock(clock.now)
-        report = DriveReport(rate_hz=float(rate_hz))
-        self.profiler = profiler = self._new_profiler()
-        drive = Drive(
-            tuple(self.parts),
-            self.mem,
-            clock,
-            loop,
-            profiler,
-            report,
-            stop_grace_s=float(stop_grace_s),
-            block_report_s=self.block_report_s,
-            precise=bool(precise),
-        )
-        self._drive = drive
-        if self._checked_for(checked):
-            report.checked = True
-            report.checked_parts = drive.check_outputs(self.contracts)
-        if self._pending_stop is not None:
-            drive.stop_requested, drive.stop_reason = True, self._pending_stop
-            self._pending_stop = None
+        drive = self._new_drive(float(rate_hz), float(stop_grace_s), bool(precise), checked)
+        report = drive.report
         self.on = drive.on = True
         outcome: BaseException | None = None
         try:
@@ -347,6 +317,34 @@ class Vehicle:
             drive.background_error.report = report
             raise drive.background_error
         return report
+
+    def _new_drive(self, rate_hz: float, stop_grace_s: float, precise: bool, checked: bool | None) -> Drive:
+        """A fresh drive on the running loop: its clock, profiler, report and stop latch (a stop asked for before
+        the run is honoured), and checked mode as asked."""
+        loop = asyncio.get_running_loop()
+        clock = get_clock(loop)
+        self.mem.use_clock(clock.now)
+        report = DriveReport(rate_hz=rate_hz)
+        self.profiler = profiler = self._new_profiler()
+        drive = Drive(
+            tuple(self.parts),
+            self.mem,
+            clock,
+            loop,
+            profiler,
+            report,
+            stop_grace_s=stop_grace_s,
+            block_report_s=self.block_report_s,
+            precise=precise,
+        )
+        self._drive = drive
+        if self._checked_for(checked):
+            report.checked = True
+            report.checked_parts = drive.check_outputs(self.contracts)
+        if self._pending_stop is not None:
+            drive.stop_requested, drive.stop_reason = True, self._pending_stop
+            self._pending_stop = None
+        return drive
 
     def _checked_for(self, checked: bool | None) -> bool:
         """Whether a drive runs checked: the run's say, else the vehicle's, else :attr:`checked_by_default` (read
@@ -526,6 +524,20 @@ class Vehicle:
         """:meth:`run` with SIGINT and SIGTERM bound to the two-step stop (``asyncdonkey.signals``)."""
         with stop_on_signals(self, self.shutdown_deadline_s()):
             return await self.run(rate_hz, max_loop_count, **kwargs)
+
+
+def _check_run_args(rate_hz: Any, max_loop_count: Any, duration: Any, stop_grace_s: Any, checked: Any) -> None:
+    """``Vehicle.run``'s arguments, each refused with a message that names it."""
+    if not (isinstance(rate_hz, int | float) and rate_hz > 0 and math.isfinite(rate_hz)):
+        raise ValueError(f"Vehicle.run: rate_hz must be a positive number, got {rate_hz!r}")
+    if max_loop_count is not None and (not isinstance(max_loop_count, int) or max_loop_count < 0):
+        raise ValueError(f"Vehicle.run: max_loop_count must be a non-negative int, got {max_loop_count!r}")
+    if duration is not None and not (isinstance(duration, int | float) and duration >= 0):
+        raise ValueError(f"Vehicle.run: duration must be a number of seconds >= 0, got {duration!r}")
+    if not (isinstance(stop_grace_s, int | float) and stop_grace_s > 0):
+        raise ValueError(f"Vehicle.run: stop_grace_s must be a positive number, got {stop_grace_s!r}")
+    if checked is not None and type(checked) is not bool:
+        raise ValueError(f"Vehicle.run: checked must be True, False or None, got {checked!r}")
 
 
 def _last_event(guard: SafetyProcess, i: int) -> Callable[[], tuple[float, float]]:

@@ -160,56 +160,11 @@ def build_entry(
     where = f"Vehicle.add({name})"
     ins = _channel_list(inputs, "inputs", where, none_ok=True)
     outs = _channel_list(outputs, "outputs", where)
-    for o in outs:
-        if o.endswith(AGE_SUFFIX):
-            raise PartSpecError(f"{where}: output {o!r} ends in {AGE_SUFFIX!r}, which is for inputs only")
-    if type(threaded) is not bool:
-        raise PartSpecError(f"{where}: threaded must be True or False, got {threaded!r}")
-    if type(executor) is not bool:
-        raise PartSpecError(f"{where}: executor must be True or False, got {executor!r}")
-    if run_condition is not None and (not isinstance(run_condition, str) or not run_condition):
-        raise PartSpecError(f"{where}: run_condition must be a channel name (str), got {run_condition!r}")
-    if on_error not in ("stop", "continue"):
-        raise PartSpecError(f"{where}: on_error must be 'stop' or 'continue', got {on_error!r}")
-    if not _positive_finite(shutdown_timeout):
-        raise PartSpecError(f"{where}: shutdown_timeout must be a positive number of seconds, got {shutdown_timeout!r}")
-    if timeout is not None and not _positive_finite(timeout):
-        raise PartSpecError(f"{where}: timeout must be a positive number of seconds or None, got {timeout!r}")
-    if type(pipelined) is not bool:
-        raise PartSpecError(f"{where}: pipelined must be True or False, got {pipelined!r}")
-    if type(react) is not bool:
-        raise PartSpecError(f"{where}: react must be True or False, got {react!r}")
-    if trigger is not None:
-        if not pipelined:
-            raise PartSpecError(f"{where}: trigger={trigger!r} starts a pipelined part; add it with pipelined=True")
-        if trigger not in ins:
-            raise PartSpecError(f"{where}: trigger {trigger!r} must be one of the part's inputs {list(ins)}")
-    if pipelined and threaded:
-        raise PartSpecError(f"{where}: a pipelined part runs in its own worker; threaded=True does not apply")
-    if pipelined and react:
-        raise PartSpecError(f"{where}: react=True is for parts downstream of a pipelined part, not the part itself")
-    if actuator is not None and type(actuator) is not bool:
-        raise PartSpecError(f"{where}: actuator must be True, False or None (decide from the part), got {actuator!r}")
+    _check_options(where, ins, outs, threaded, executor, run_condition, on_error, shutdown_timeout, timeout)
+    _check_pipelining(where, ins, threaded, pipelined, trigger, react, actuator)
 
-    update = getattr(part, "update", None)
-    async_update = inspect.iscoroutinefunction(update)
-    if threaded:
-        if update is None or not callable(update):
-            raise PartSpecError(f"{where}: threaded=True needs an update() method, {name} has none")
-        fn = getattr(part, "run_threaded", None)
-        method = "run_threaded"
-        if fn is None and async_update:
-            fn, method = getattr(part, "run", None), "run"
-        if fn is None or not callable(fn):
-            raise PartSpecError(f"{where}: threaded=True needs a run_threaded() method, {name} has none")
-    else:
-        fn = getattr(part, "run", None)
-        method = "run"
-        if fn is None or not callable(fn):
-            raise PartSpecError(
-                f"{where}: a part needs a run() method (or threaded=True with update()"
-                f" and run_threaded()); {name} has none"
-            )
+    async_update = inspect.iscoroutinefunction(getattr(part, "update", None))
+    fn, method = _run_method(part, name, where, threaded, async_update)
     is_coro = inspect.iscoroutinefunction(fn)
     if executor and is_coro:
         raise PartSpecError(f"{where}: executor=True is for a sync {method}(); {name}.{method} is async")
@@ -256,6 +211,77 @@ def build_entry(
         )
     e.actuator = actuator
     return e
+
+
+def _check_options(
+    where: str,
+    ins: tuple[str | None, ...],
+    outs: tuple[str, ...],
+    threaded: Any,
+    executor: Any,
+    run_condition: Any,
+    on_error: Any,
+    shutdown_timeout: Any,
+    timeout: Any,
+) -> None:
+    """The options every part has, each refused with a message naming the part and the argument."""
+    for o in outs:
+        if o.endswith(AGE_SUFFIX):
+            raise PartSpecError(f"{where}: output {o!r} ends in {AGE_SUFFIX!r}, which is for inputs only")
+    if type(threaded) is not bool:
+        raise PartSpecError(f"{where}: threaded must be True or False, got {threaded!r}")
+    if type(executor) is not bool:
+        raise PartSpecError(f"{where}: executor must be True or False, got {executor!r}")
+    if run_condition is not None and (not isinstance(run_condition, str) or not run_condition):
+        raise PartSpecError(f"{where}: run_condition must be a channel name (str), got {run_condition!r}")
+    if on_error not in ("stop", "continue"):
+        raise PartSpecError(f"{where}: on_error must be 'stop' or 'continue', got {on_error!r}")
+    if not _positive_finite(shutdown_timeout):
+        raise PartSpecError(f"{where}: shutdown_timeout must be a positive number of seconds, got {shutdown_timeout!r}")
+    if timeout is not None and not _positive_finite(timeout):
+        raise PartSpecError(f"{where}: timeout must be a positive number of seconds or None, got {timeout!r}")
+
+
+def _check_pipelining(
+    where: str, ins: tuple[str | None, ...], threaded: Any, pipelined: Any, trigger: Any, react: Any, actuator: Any
+) -> None:
+    """The options of pipelined and reacting parts, and ``actuator``, checked together (they exclude each other)."""
+    if type(pipelined) is not bool:
+        raise PartSpecError(f"{where}: pipelined must be True or False, got {pipelined!r}")
+    if type(react) is not bool:
+        raise PartSpecError(f"{where}: react must be True or False, got {react!r}")
+    if trigger is not None:
+        if not pipelined:
+            raise PartSpecError(f"{where}: trigger={trigger!r} starts a pipelined part; add it with pipelined=True")
+        if trigger not in ins:
+            raise PartSpecError(f"{where}: trigger {trigger!r} must be one of the part's inputs {list(ins)}")
+    if pipelined and threaded:
+        raise PartSpecError(f"{where}: a pipelined part runs in its own worker; threaded=True does not apply")
+    if pipelined and react:
+        raise PartSpecError(f"{where}: react=True is for parts downstream of a pipelined part, not the part itself")
+    if actuator is not None and type(actuator) is not bool:
+        raise PartSpecError(f"{where}: actuator must be True, False or None (decide from the part), got {actuator!r}")
+
+
+def _run_method(part: Any, name: str, where: str, threaded: bool, async_update: bool) -> tuple[Any, str]:
+    """The method each tick calls (``run``, or ``run_threaded`` for a threaded part) and its name."""
+    if threaded:
+        update = getattr(part, "update", None)
+        if update is None or not callable(update):
+            raise PartSpecError(f"{where}: threaded=True needs an update() method, {name} has none")
+        fn = getattr(part, "run_threaded", None)
+        method = "run_threaded"
+        if fn is None and async_update:
+            fn, method = getattr(part, "run", None), "run"
+        if fn is None or not callable(fn):
+            raise PartSpecError(f"{where}: threaded=True needs a run_threaded() method, {name} has none")
+        return fn, method
+    fn = getattr(part, "run", None)
+    if fn is None or not callable(fn):
+        raise PartSpecError(
+            f"{where}: a part needs a run() method (or threaded=True with update() and run_threaded()); {name} has none"
+        )
+    return fn, "run"
 
 
 # ------------------------------------------------------------------------------------------------ inputs

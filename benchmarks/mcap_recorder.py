@@ -7,6 +7,9 @@ odometry) written every tick by five parts, plus the loop's timing; the recorder
   :class:`~asyncdonkey.parts.mcap.McapRecorder`, then with a :class:`~asyncdonkey.parts.tub.TubWriter` of the
   camera and user channels in its place; the figures are the loop's own per-part times for the recorder
   (p50 / p99 / max): what recording costs the tick. Target: p99 <= 0.05 ms.
+* **run() alone**: the recorder's ``run()`` timed on its own, back to back inside a tick of the same car (plus an
+  actuator, so an actuator's latency series is counted too), with the writer thread kept idle (the calls queue
+  into a private deque): the tick's cost without the noise of a 50 ms sleep or of the thread's work.
 * **flat out**: ``run()`` called back to back (yielding between calls) for a few seconds: ticks written per
   second by the writer thread (JPEG encoding included) and ticks the bounded queue refused.
 
@@ -100,6 +103,55 @@ def in_loop(recorder: str, root: str, seconds: float) -> dict[str, float]:
     }
 
 
+class Motor:
+    """An actuator: the loop keeps its sensing-to-actuation latency, a series the recorder counts each tick."""
+
+    def run(self, throttle):
+        return None
+
+    def safe_state_sync(self):
+        pass
+
+
+class RunProbe:
+    """On one tick, times ``rec.run()`` in batches with the writer thread idle: the calls go to a private queue
+    (the thread keeps watching the real one), emptied after each batch."""
+
+    def __init__(self, rec: object, calls: int, batches: int) -> None:
+        self.rec, self.calls, self.batches = rec, calls, batches
+        self.per_call: list[float] = []
+        self.k = 0
+
+    def run(self) -> None:
+        self.k += 1
+        if self.k != 5:
+            return
+        from collections import deque
+
+        rec = self.rec
+        queue, size = rec._queue, rec._queue_size  # type: ignore[attr-defined]
+        rec._queue, rec._queue_size = deque(), 10**9  # type: ignore[attr-defined]
+        try:
+            for _ in range(self.batches):
+                t0 = time.perf_counter()
+                for _ in range(self.calls):
+                    rec.run()  # type: ignore[attr-defined]
+                self.per_call.append((time.perf_counter() - t0) / self.calls)
+                rec._queue.clear()  # type: ignore[attr-defined]
+        finally:
+            rec._queue, rec._queue_size = queue, size  # type: ignore[attr-defined]
+
+
+def run_alone(root: str, calls: int = 2000, batches: int = 20) -> dict[str, float]:
+    v, rec = build("mcap", os.path.join(root, "alone.mcap"))
+    v.add(Motor(), inputs=["user/throttle"], actuator=True, name="motor")
+    probe = RunProbe(rec, calls, batches)
+    v.add(probe, name="probe")
+    asyncio.run(v.run(rate_hz=20, max_loop_count=8))
+    us = np.array(probe.per_call) * 1e6
+    return {"p50_us": float(np.median(us)), "min_us": float(us.min()), "calls": calls * batches}
+
+
 def flat_out(root: str, seconds: float) -> dict[str, float]:
     v, rec = build("mcap", os.path.join(root, "flat.mcap"))
     cam, ctl = v.parts[0].part, v.parts[1].part
@@ -132,6 +184,7 @@ def main() -> None:
             "machine": describe(),
             "mcap_in_loop_20hz": in_loop("mcap", root, seconds),
             "tub_in_loop_20hz": in_loop("tub", root, seconds),
+            "mcap_run_alone": run_alone(root),
             "mcap_flat_out": flat_out(root, 1.0 if args.quick else 3.0),
             "targets": TARGETS,
         }
@@ -145,6 +198,8 @@ def main() -> None:
             f"{key:20s} run() p50 {r['p50_ms']:.4f} ms  p99 {r['p99_ms']:.4f} ms  max {r['max_ms']:.3f} ms"
             f"  ({r['ticks']} ticks, {r['dropped']} dropped)"
         )
+    a = res["mcap_run_alone"]
+    print(f"mcap run() alone: p50 {a['p50_us']:.2f} us, min {a['min_us']:.2f} us per call ({a['calls']} calls)")
     f = res["mcap_flat_out"]
     print(
         f"mcap flat out: {f['ticks_per_s']:.0f} ticks/s written,"

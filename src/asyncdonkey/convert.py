@@ -145,14 +145,18 @@ def tub_to_mcap(
     gate = _gate(contracts)
     sink = McapSink(mcap_path, encoder, metadata=meta, fsync=False, compression=compression)
     n = 0
+    first_ms: int | None = None
     try:
         for rec in tub.records():
             ts = rec.raw.get("_timestamp_ms")
-            if not isinstance(ts, int | float):
+            if not isinstance(ts, int | float) or isinstance(ts, bool):
                 continue
-            t = float(ts) / 1000.0
-            if sink.times is None:
-                sink.times = TimeMap(t, round(float(ts) * 1e6), "tub")
+            if first_ms is None:
+                # the first record's millisecond is the anchor, in integers; later records are milliseconds from
+                # it, which the tub clock maps to nanoseconds exactly (TimeMap.resolution_ns)
+                first_ms = round(ts)
+                sink.times = TimeMap(0.0, first_ms * 1_000_000, "tub", resolution_ns=1_000_000)
+            t = (ts - first_ms) / 1000.0
             now = time.monotonic()
             values: dict[str, Any] = {}
             for key, value in rec.raw.items():

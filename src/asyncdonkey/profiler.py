@@ -75,6 +75,12 @@ class Series:
             return None
         return self._buf[n % self.window]
 
+    def first_readable(self) -> int:
+        """The oldest sample number another thread can still read whole: the one at ``count - window`` shares its
+        slot with the next sample, which the loop may be storing right now (it stores before it counts). A
+        reader calls :meth:`at`, then this: a sample older than it may have been overwritten while read."""
+        return max(0, self.count - self.window + 1)
+
     @property
     def max(self) -> float:
         """Run-long maximum of every sample recorded (the skipped first one excluded)."""
@@ -204,6 +210,14 @@ class TickTable:
             cache = self._cache = (rows, first, self._values(first, rows))
         return cache[2][start - first : stop - first]
 
+    def start_of(self, tick: int) -> float | None:
+        """The start of tick number ``tick`` (committed or running), or None once its row has left the ring or
+        before it began. Read from another thread: the row is checked to be still in the ring after the read."""
+        if tick < 0 or tick >= self.begun:
+            return None
+        start = self.buf[self.offset(tick) + 1]
+        return start if tick >= self.oldest() else None
+
     def lateness_of_running_tick(self) -> float | None:
         """Start minus deadline of the tick running now (its row is not committed yet), or None."""
         if self.begun <= self.rows:
@@ -263,6 +277,16 @@ class TableSeries:
             return t.lateness_of_running_tick() if self.running and tick == t.rows else None
         v = float(t.values(tick, tick + 1)[0, self.col])
         return None if math.isnan(v) else v
+
+    def count_at(self, rows: int) -> int:
+        """:attr:`count` as it was when the table had ``rows`` committed rows (not for the running lateness): a
+        recorder reads the row count once per tick instead of every part's count."""
+        return max(0, rows - 1) if self.skip_first else rows
+
+    def first_readable(self) -> int:
+        """The oldest sample number whose row is still in the ring (see :meth:`Series.first_readable`)."""
+        oldest = self.table.oldest()
+        return max(0, oldest - 1) if self.skip_first else oldest
 
     @property
     def last(self) -> float | None:

@@ -5,7 +5,10 @@
     asyncdonkey report data/drive.mcap                 # writes data/drive.html
     asyncdonkey report data/tub_1 -o tub_1.html        # a tub: record intervals only
 
-From an MCAP recording (:class:`~asyncdonkey.parts.mcap.McapRecorder` with its timing topics) the page shows:
+From an MCAP recording (:class:`~asyncdonkey.parts.mcap.McapRecorder` with its timing topics) the page shows
+every tick, part run and latency sample the recording holds (the recorder writes each sample of the drive once;
+samples it could not, having fallen more than the profiler's window behind, are counted and the page says how
+many):
 
 * **lateness over time**: each tick's start minus its deadline, with the ticks whose previous tick overran
   its period marked (red) and the deadlines the loop skipped because it was more than a period behind (orange
@@ -56,19 +59,22 @@ class DriveTiming:
     source: str
     kind: str  # "mcap" or "tub"
     t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    """tick times (s)"""
+    """tick times (s): each tick's start (MCAP), in tick order"""
     lateness_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     duration_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    """duration of the tick before each tick (NaN where unknown)"""
+    """each tick's duration (NaN where unknown); a tub: the interval before each record"""
     overrun_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """each tick's overrun (NaN where unknown)"""
     skipped_at: list[tuple[float, int]] = field(default_factory=list)
-    """(time, deadlines skipped just before it)"""
+    """(time, deadlines skipped then)"""
     parts: dict[str, np.ndarray] = field(default_factory=dict)
     latency: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     """actuator → (times, ms)"""
     overruns: int = 0
     skipped_deadlines: int = 0
     period_ms: float | None = None
+    timing_dropped: int = 0
+    """timing samples the recorder could not write (they left the profiler's window first)"""
 
 
 def load_timing(path: str | os.PathLike[str]) -> DriveTiming:
@@ -85,41 +91,65 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
     from .parts.mcap.reader import read_mcap
 
     d = DriveTiming(os.fspath(path), "mcap")
-    t0: int | None = None
-    ticks: list[tuple[float, float, float, float]] = []
+    ticks: dict[int, list[Any]] = {}  # tick number → [log ns, lateness, duration, overrun, overruns, skipped]
     parts: dict[str, list[float]] = {}
-    lat: dict[str, list[tuple[float, float]]] = {}
-    last_skipped = 0
+    lat: dict[str, list[tuple[int, float]]] = {}
     for m in read_mcap(path, {TICK_TOPIC, PARTS_TOPIC, LATENCY_TOPIC}):
-        if t0 is None:
-            t0 = m.log_time_ns
-        t = (m.log_time_ns - t0) / 1e9
         v = m.value
         if m.topic == TICK_TOPIC:
-            if v.get("lateness_ms") is None:
-                continue
-            ticks.append((t, v["lateness_ms"], _num(v.get("duration_ms")), _num(v.get("overrun_ms"))))
-            skipped = v.get("skipped_deadlines") or 0
-            if skipped > last_skipped:
-                d.skipped_at.append((t, skipped - last_skipped))
-            last_skipped = max(last_skipped, skipped)
-            d.overruns = v.get("overruns") or d.overruns
+            _add_tick(ticks, m.log_time_ns, v)
+            d.timing_dropped = max(d.timing_dropped, v.get("timing_dropped") or 0)
         elif m.topic == PARTS_TOPIC:
             for name, ms in v.items():
                 parts.setdefault(name, []).append(ms)
         else:
             for name, ms in v.items():
-                lat.setdefault(name, []).append((t, ms))
-    if not ticks:
+                lat.setdefault(name, []).append((m.log_time_ns, ms))
+    started = sorted(k for k, row in ticks.items() if row[0] is not None and row[1] is not None)
+    if not started:
         raise ReportError(f"{os.fspath(path)}: no {TICK_TOPIC} messages (recorded with timing=False?)")
-    arr = np.array(ticks, dtype=float)
-    d.t, d.lateness_ms, d.duration_ms, d.overrun_ms = arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3]
-    d.skipped_deadlines = last_skipped
+    t0 = min([ticks[started[0]][0], *(ns for v in lat.values() for ns, _ in v)])
+    rows = [ticks[k] for k in started]
+    d.t = np.array([(r[0] - t0) / 1e9 for r in rows])
+    d.lateness_ms, d.duration_ms, d.overrun_ms = (np.array([_num(r[i]) for r in rows]) for i in (1, 2, 3))
+    _counters(d, rows)
     d.parts = {k: np.array(v) for k, v in parts.items()}
-    d.latency = {k: (np.array([a for a, _ in v]), np.array([b for _, b in v])) for k, v in lat.items()}
+    d.latency = {k: (np.array([(a - t0) / 1e9 for a, _ in v]), np.array([b for _, b in v])) for k, v in lat.items()}
     if len(d.t) > 2:
         d.period_ms = float(np.median(np.diff(d.t))) * 1e3
     return d
+
+
+def _add_tick(ticks: dict[int, list[Any]], log_ns: int, v: dict[str, Any]) -> None:
+    """File a tick message's figures under the tick they belong to. A message carries its own tick's duration,
+    overrun and the drive's counters after it; files written before ``timing_dropped`` existed carried the
+    previous tick's (and were stamped with the recorder's run rather than the tick's start)."""
+    k = v.get("tick")
+    if not isinstance(k, int):
+        return
+    row = ticks.setdefault(k, [None] * 6)
+    row[0], row[1] = log_ns, v.get("lateness_ms")
+    own = "timing_dropped" in v
+    ended = row if own else ticks.setdefault(k - 1, [None] * 6)  # the tick the figures and counters are of
+    ended[2], ended[3] = v.get("duration_ms"), v.get("overrun_ms")
+    ended[4], ended[5] = v.get("overruns"), v.get("skipped_deadlines")
+
+
+def _counters(d: DriveTiming, rows: list[list[Any]]) -> None:
+    """The drive's overrun and skipped-deadline counts, and where deadlines were skipped: at the end of the tick
+    whose counters show more than the last known ones (a tick's counters are read after it ended)."""
+    last_skipped = 0
+    for i, r in enumerate(rows):
+        if isinstance(r[4], int):
+            d.overruns = r[4]
+        skipped = r[5]
+        if not isinstance(skipped, int):
+            continue
+        if skipped > last_skipped:
+            end = d.t[i] + (d.duration_ms[i] / 1e3 if math.isfinite(d.duration_ms[i]) else 0.0)
+            d.skipped_at.append((float(end), skipped - last_skipped))
+        last_skipped = max(last_skipped, skipped)
+    d.skipped_deadlines = last_skipped
 
 
 def _load_tub(path: str | os.PathLike[str]) -> DriveTiming:
@@ -239,10 +269,10 @@ def lateness_chart(d: DriveTiming) -> str:
             f"<title>{n} deadline(s) skipped at {t:.2f} s</title></line>"
         )
     ax.polyline(d.t, d.lateness_ms, _COLORS[0])
-    over = np.nonzero(d.overrun_ms > 0)[0]
+    over = np.nonzero(d.overrun_ms[:-1] > 0)[0]  # marked on the tick after the overrun, the one it made late
     for i in over[:2000]:
         ax.parts.append(
-            f'<circle cx="{ax.x(d.t[i]):.1f}" cy="{ax.y(d.lateness_ms[i]):.1f}" r="2.5" fill="#dc2626">'
+            f'<circle cx="{ax.x(d.t[i + 1]):.1f}" cy="{ax.y(d.lateness_ms[i + 1]):.1f}" r="2.5" fill="#dc2626">'
             f"<title>previous tick overran by {d.overrun_ms[i]:.2f} ms</title></circle>"
         )
     return ax.svg()
@@ -360,6 +390,11 @@ def render_html(d: DriveTiming) -> str:
             f"<b>{d.overruns}</b> overruns (red dots: the tick after one); "
             f"<b>{d.skipped_deadlines}</b> skipped deadlines (orange lines).</p>"
         )
+        if d.timing_dropped:
+            out.append(
+                f"<p><b>{d.timing_dropped}</b> timing samples are not in this recording: the recorder fell more "
+                "than the profiler's window behind and they left it before they were written.</p>"
+            )
         out += ["<h2>Lateness over time</h2>", lateness_chart(d)]
         out += ["<h2>Lateness histogram</h2>", histogram(d.lateness_ms, "lateness (ms)")]
         out += ["<h2>Tick duration</h2>", duration_chart(d, "tick duration (ms)")]

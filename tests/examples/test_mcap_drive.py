@@ -88,6 +88,7 @@ def test_simulated_ticks_read_back_whole_milliseconds_apart_whatever_the_wall_cl
         assert set(np.diff(stamps).tolist()) == {50}, source
 
 
+@pytest.mark.subprocess
 def test_the_replay_command_takes_an_mcap_file_and_a_model(drive, tmp_path):
     _, mcap = drive
     out = subprocess.run(
@@ -102,6 +103,7 @@ def test_the_replay_command_takes_an_mcap_file_and_a_model(drive, tmp_path):
     assert report["angle_mae"] < 0.5  # the shipped pilot follows the scripted driver it learnt from
 
 
+@pytest.mark.donkeycar
 def test_convert_mcap_to_a_tub_that_donkeycar_reads(drive, tmp_path):
     _, mcap = drive
     out = tmp_path / "from_mcap"
@@ -181,6 +183,12 @@ async def test_report_draws_lateness_with_overruns_and_skipped_deadlines(tmp_pat
     assert [(round(t, 2), n) for t, n in d.skipped_at] == [(0.62, 2), (1.72, 2)]
     assert np.nanmax(d.duration_ms) == pytest.approx(170, abs=1)
     assert set(d.parts) == {"stall", "mcap"}
+    # every tick and part run of the drive, the same figures as its own report
+    p = v.profiler
+    assert list(d.duration_ms) == list(p.tick.recent(drop_last=False) * 1e3)
+    assert list(d.lateness_ms) == list(p.lateness.recent(drop_last=False) * 1e3)
+    for name in ("stall", "mcap"):
+        assert list(d.parts[name]) == list(p.parts[name].recent(drop_last=False) * 1e3)
     page = render_html(d)
     assert page.count("deadline(s) skipped") == 2 and page.count("overran by") == 2
     for svg in page.split("<svg")[1:]:

@@ -471,9 +471,14 @@ class BackgroundWriter:
             self._wake.set()
             left = sum(1 for e in list(self._queue) if e[0] is not None)
             self._abandoned = left
-            logger.error(
-                "%s: %d queued records not written: the disk did not keep up before shutdown", self._label, left
-            )
+            if left:
+                logger.error(
+                    "%s: %d queued records not written: the disk did not keep up before shutdown", self._label, left
+                )
+            else:  # nothing was lost: the thread is still finishing the record in hand or closing the files
+                logger.warning(
+                    "%s: still closing the files after the shutdown timeout; nothing queued was lost", self._label
+                )
             self._thread.join(_CLOSE_WAIT_S)
         s = self.stats
         level = logging.WARNING if (s.dropped or s.failed or s.abandoned or s.bad_values) else logging.INFO

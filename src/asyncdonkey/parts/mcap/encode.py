@@ -8,6 +8,13 @@ same topics, schemas and bytes.
 **Topics.** A Memory channel ``cam/image_array`` becomes topic ``/cam/image_array``. The loop's own timing is
 on ``/asyncdonkey/tick``, ``/asyncdonkey/parts`` and ``/asyncdonkey/latency`` (see :data:`TICK_TOPIC`).
 
+**Timing, sample for sample.** The profiler keeps its samples in rings; the tick only notes how many each series
+had (:class:`TimingLayout`, :meth:`TimingLayout.capture`), and the writer thread emits every sample from where it
+left off up to that count, each exactly once: several in one tick when an actuator acted twice between recorder
+runs or when the writer fell behind, none when there was none. So a recording holds the drive's timing as the
+profiler measured it, whenever the writer gets to it; a sample that left the ring before the writer read it is
+counted in :attr:`TickEncoder.timing_dropped` (and in each tick message), never silently lost.
+
 **Schemas.** A value's kind is decided by its first value (or by ``kinds={channel: kind}``):
 
 * ``image``: a uint8 HxWx3 RGB (or HxW grey) array → ``foxglove.CompressedImage`` (protobuf), JPEG-encoded
@@ -43,6 +50,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ...profiler import TableSeries
 from ..tub.encode import make_converter
 
 __all__ = [
@@ -54,6 +62,7 @@ __all__ = [
     "TickEncoder",
     "TickSnapshot",
     "TimeMap",
+    "TimingLayout",
     "topic_for",
 ]
 
@@ -61,14 +70,21 @@ logger = logging.getLogger(__name__)
 
 KINDS = ("image", "laserscan", "json", "skip")
 TICK_TOPIC = "/asyncdonkey/tick"
-"""Each tick: ``tick`` (its number), ``lateness_ms`` (its start minus its deadline), ``duration_ms`` and
-``overrun_ms`` of the *previous* tick (the current one has not ended when the recorder runs), cumulative
-``overruns`` and ``skipped_deadlines``."""
+"""One message per ended tick, stamped with the tick's start: ``tick`` (its number, from 1), ``lateness_ms`` (its
+start minus its deadline), ``duration_ms`` and ``overrun_ms`` (its own), the drive's ``overruns`` and
+``skipped_deadlines`` counts after it ended (``None`` for a tick whose own recorder run was dropped: they are not
+known), and ``timing_dropped``, the samples of the recording so far that left the profiler's window before the
+writer read them. Written when the next tick records (the current tick has not ended then), and for the last
+tick when the recorder shuts down. (Files written before ``timing_dropped`` existed carry the *previous* tick's
+``duration_ms`` and ``overrun_ms`` in each message; the report reads both.)"""
 PARTS_TOPIC = "/asyncdonkey/parts"
-"""Each tick: ``{part name: ms}`` for every part that completed a run since the last message (parts after the
-recorder in the loop report the previous tick's run)."""
+"""``{part name: ms}``, stamped when the recorder ran: the part runs completed since the last message, each
+exactly once. Parts run in the tick report each ended tick's run (whether before or after the recorder); a
+pipelined part reports each of its runs; when a part has several new runs, the k-th message of the tick holds
+its k-th run."""
 LATENCY_TOPIC = "/asyncdonkey/latency"
-"""``{actuator name: ms}``: sensing-to-actuation latency of each actuator's newest command."""
+"""``{actuator name: ms}``, stamped when the recorder ran: every sensing-to-actuation latency sample since the
+last message, one message per sample index as for :data:`PARTS_TOPIC`."""
 GPS_TOPIC = "/gps/fix"
 
 
@@ -95,35 +111,97 @@ class TimeMap:
     Taken once per recording (the wall clock is read once, at the anchor), so the mapping is linear and exact
     to the nanosecond over a drive; the anchor is saved in the file's ``asyncdonkey.clock`` metadata record so
     a reader can get runtime-clock times back (:meth:`to_clock`).
+
+    ``resolution_ns`` is the clock's step: a tub's clock counts whole milliseconds (``1_000_000``), and times
+    are then rounded to that step before they are scaled, in integers, so a millisecond stamp maps to exactly
+    ``wall_anchor_ns + ms * 1_000_000`` however far from the anchor (in floats, seconds since 1970 keep only a
+    quarter of a microsecond, and ``(t - anchor) * 1e9`` drifts off the millisecond by nanoseconds months out).
     """
 
     clock_anchor_s: float
     wall_anchor_ns: int
-    clock: str = "monotonic"  # or "virtual"
+    clock: str = "monotonic"  # or "virtual", "tub"
+    resolution_ns: int = 1
 
     def to_ns(self, t: float) -> int:
-        return self.wall_anchor_ns + round((t - self.clock_anchor_s) * 1e9)
+        step = self.resolution_ns
+        if step == 1:
+            return self.wall_anchor_ns + round((t - self.clock_anchor_s) * 1e9)
+        return self.wall_anchor_ns + round((t - self.clock_anchor_s) * (1e9 / step)) * step
 
     def to_clock(self, ns: int) -> float:
         return self.clock_anchor_s + (ns - self.wall_anchor_ns) / 1e9
 
     def as_metadata(self) -> dict[str, str]:
-        return {
+        out = {
             "clock_anchor_s": repr(self.clock_anchor_s),
             "wall_anchor_ns": str(self.wall_anchor_ns),
             "clock": self.clock,
         }
+        if self.resolution_ns != 1:
+            out["resolution_ns"] = str(self.resolution_ns)
+        return out
 
     @classmethod
     def from_metadata(cls, data: Mapping[str, str]) -> TimeMap:
-        return cls(float(data["clock_anchor_s"]), int(data["wall_anchor_ns"]), data.get("clock", "monotonic"))
+        return cls(
+            float(data["clock_anchor_s"]),
+            int(data["wall_anchor_ns"]),
+            data.get("clock", "monotonic"),
+            int(data.get("resolution_ns", "1")),
+        )
+
+
+class TimingLayout:
+    """Which timing series of a profiler a tick's snapshot counts, and how (built on the loop thread once per
+    drive, and again if a series is added).
+
+    The parts run in the tick share the drive's :class:`~asyncdonkey.profiler.TickTable`: their sample counts
+    follow from its committed row count, read once. Every other series (a pipelined part, an actuator's
+    latency) has its count read in :meth:`capture`. So noting "how far each series had got at this tick"
+    costs the tick one attribute read plus one per such series, and the writer thread later reads the samples
+    themselves, by number, from the rings.
+    """
+
+    __slots__ = ("counted", "profiler", "series", "size", "table")
+
+    def __init__(self, profiler: Any) -> None:
+        self.profiler = profiler
+        parts, latency = dict(profiler.parts), dict(profiler.latency)
+        self.size = len(parts) + len(latency)
+        tick = profiler.tick
+        self.table = tick.table if isinstance(tick, TableSeries) else None
+        self.series: list[tuple[str, str, Any]] = [(PARTS_TOPIC, n, s) for n, s in parts.items()]
+        self.series += [(LATENCY_TOPIC, n, s) for n, s in latency.items()]
+        self.counted = [s for _, _, s in self.series if not self._from_rows(s)]
+        """the series whose count :meth:`capture` reads, in :attr:`series` order"""
+
+    def _from_rows(self, s: Any) -> bool:
+        return isinstance(s, TableSeries) and s.table is self.table and not s.running
+
+    def current(self, profiler: Any) -> bool:
+        """Still the layout of ``profiler``'s series (no series added since)?"""
+        return profiler is self.profiler and self.size == len(profiler.parts) + len(profiler.latency)
+
+    def capture(self) -> tuple[int, list[int]]:
+        """(ticks ended, the counted series' sample counts) now; for the loop thread."""
+        table = self.table
+        rows = table.rows if table is not None else self.profiler.tick.count
+        return rows, [s.count for s in self.counted]
+
+    def counts(self, rows: int, counted: Sequence[int]) -> list[int]:
+        """Every series' sample count (in :attr:`series` order) from a :meth:`capture`."""
+        it = iter(counted)
+        return [s.count_at(rows) if self._from_rows(s) else next(it) for _, _, s in self.series]
 
 
 class TickSnapshot(NamedTuple):
     """What ``run()`` hands over for one tick: references and small dict copies, never copies of the values.
 
-    The timing is not copied in the tick: the writer thread reads the profiler's ring buffers itself
-    (:meth:`~asyncdonkey.profiler.Series.at`), sample by number, which costs the tick nothing.
+    The timing is not copied in the tick, only counted: how many ticks had ended and how many samples each
+    timing series had (:meth:`TimingLayout.capture`). The writer thread reads those samples from the
+    profiler's rings itself (:meth:`~asyncdonkey.profiler.Series.at`), by number, so that each lands in the
+    tick that took it, exactly once, however far behind the writer is.
     """
 
     t: float
@@ -131,13 +209,15 @@ class TickSnapshot(NamedTuple):
     values: dict[str, Any]
     origins: dict[str, float]
     ticks: int
-    """ticks started in this drive when the recorder ran (the profiler's lateness sample count)"""
-    profiler: Any
-    """the drive's :class:`~asyncdonkey.profiler.Profiler` (``None``: no timing)"""
+    """ticks ended in this drive when the recorder ran (the current one has not)"""
+    timing: TimingLayout | None
+    """the drive's timing series (``None``: no timing)"""
     overruns: int | None
     """the drive's overrun count when the recorder ran"""
     skipped: int | None
     """the drive's skipped-deadline count when the recorder ran"""
+    counts: Sequence[int] = ()
+    """the sample counts of ``timing.counted`` when the recorder ran"""
 
 
 class TickEncoder:
@@ -182,9 +262,13 @@ class TickEncoder:
         self._specs: dict[str, ChannelSpec | None] = {}
         self._last_seen: dict[str, tuple[Any, float]] = {}
         self._jpeg = make_converter("image_array", jpeg_quality=jpeg_quality)
-        self._counts: dict[tuple[str, str], int] = {}
-        self._tick_count = 0
+        # the timing emitted so far (writer thread): per series the next sample number, and the next tick
+        self._next: dict[tuple[str, str], int] = {}
+        self._next_tick = 0
         self._profiler: Any = None
+        self.timing_dropped = 0
+        """timing samples (a part's run, a latency, a tick's figures) that left the profiler's ring before the
+        writer thread read them: not in the recording, counted here and in each tick message."""
         self.bad_values = 0
         self.bad_channels: dict[str, str] = {}
         """channel → why it is not recorded (a value the encoder cannot represent)."""
@@ -230,15 +314,10 @@ class TickEncoder:
             last[ch] = (value, origin)
             if self.gps is not None and ch in self.gps:
                 gps_due = True
-            overlay = None
             try:
                 spec = self._spec_for(ch, value)
                 if spec is None:
                     continue
-                if self.steering and self._kinds[ch] == "image":
-                    ospec = self._overlay_spec(ch)
-                    if wanted is None or wanted(ospec):
-                        overlay = self._steering(ospec, value, values, times.to_ns(origin))
                 if wanted is not None and not wanted(spec):
                     data = None
                 else:
@@ -249,14 +328,16 @@ class TickEncoder:
                 continue
             if data is not None:
                 yield spec, data, t_ns, times.to_ns(origin)
-            if overlay is not None:
-                yield overlay[0], overlay[1], t_ns, times.to_ns(origin)
+            if self.steering and self._kinds[ch] == "image":
+                overlay = self._overlay(ch, value, values, times.to_ns(origin), wanted)
+                if overlay is not None:
+                    yield overlay[0], overlay[1], t_ns, times.to_ns(origin)
         if gps_due:
             fix = self._gps_fix(values, origins, snap.t, times)
             if fix is not None and (wanted is None or wanted(fix[0])):
                 yield fix[0], fix[1], t_ns, fix[2]
-        if self.timing and snap.profiler is not None:
-            for msg in self._timing(snap, t_ns):
+        if self.timing and snap.timing is not None:
+            for msg in self.timing_messages(snap, times):
                 if wanted is None or wanted(msg[0]):
                     yield msg
 
@@ -280,6 +361,21 @@ class TickEncoder:
 
             spec = self._specs[topic] = _schema_spec(topic, ImageAnnotations)
         return spec
+
+    def _overlay(
+        self, ch: str, image: Any, values: dict[str, Any], ns: int, wanted: Callable[[ChannelSpec], bool] | None
+    ) -> tuple[ChannelSpec, bytes] | None:
+        """The steering drawn over frame ``ch``, or None. Apart from the frame's own message: a drawing that
+        fails (a JPEG that does not decode) is counted and never costs the frame."""
+        spec = self._overlay_spec(ch)
+        if wanted is not None and not wanted(spec):
+            return None
+        try:
+            return self._steering(spec, image, values, ns)
+        except (TypeError, ValueError, OverflowError) as exc:
+            self.bad_values += 1
+            self.bad_channels.setdefault(spec.topic[1:], str(exc))
+            return None
 
     def _steering(
         self, spec: ChannelSpec, image: np.ndarray, values: dict[str, Any], ns: int
@@ -327,42 +423,83 @@ class TickEncoder:
         msg = LocationFix(timestamp=_stamp(ns), frame_id="gps", latitude=float(lat), longitude=float(lon))
         return spec, msg.encode(), ns
 
-    def _timing(self, snap: TickSnapshot, t_ns: int) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
-        p, ticks = snap.profiler, snap.ticks
-        counts = self._counts
-        if p is not self._profiler:  # a new drive: its profiler counts from 0 again
-            self._profiler = p
-            counts.clear()
-            self._tick_count = 0
-        if ticks != self._tick_count:
-            lateness = p.lateness.at(ticks - 1)
-            duration = p.tick.at(ticks - 2)  # the previous tick: the current one has not ended
-            overrun = p.overrun.at(ticks - 2)
-            msg = {
-                "tick": ticks,
-                "lateness_ms": None if lateness is None else lateness * 1e3,
-                "duration_ms": None if duration is None else duration * 1e3,
-                "overrun_ms": None if overrun is None else overrun * 1e3,
-                "overruns": snap.overruns,
-                "skipped_deadlines": snap.skipped,
-            }
-            self._tick_count = ticks
-            yield self._json_spec(TICK_TOPIC, "asyncdonkey.Tick", msg), _dumps(msg), t_ns, t_ns
-        for topic, schema, series in (
-            (PARTS_TOPIC, "asyncdonkey.PartTimes", p.parts),
-            (LATENCY_TOPIC, "asyncdonkey.Latency", p.latency),
-        ):
-            msg = {}
-            for name, s in list(series.items()):
-                key = (topic, name)
-                n = s.count
-                if n != counts.get(key, 0):
-                    last = s.at(n - 1)
-                    if last is not None:
-                        msg[name] = last * 1e3
-                    counts[key] = n
-            if msg:
+    def timing_messages(self, snap: TickSnapshot, times: TimeMap) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
+        """The timing messages due at ``snap``: every tick ended and every part and latency sample taken since the
+        last snapshot, each exactly once (module docstring); samples already gone from the rings are counted in
+        :attr:`timing_dropped`."""
+        layout = snap.timing
+        if layout is None:
+            return
+        if layout.profiler is not self._profiler:  # a new drive: its series count from 0 again
+            self._profiler = layout.profiler
+            self._next.clear()
+            self._next_tick = 0
+        t_ns = times.to_ns(snap.t)
+        samples = self._samples(layout, layout.counts(snap.ticks, snap.counts))
+        # the ticks first: their message carries the drops counted so far, these samples' included
+        yield from self._tick_messages(snap, layout, times, t_ns)
+        for topic, schema in ((PARTS_TOPIC, "asyncdonkey.PartTimes"), (LATENCY_TOPIC, "asyncdonkey.Latency")):
+            for msg in samples[topic]:
                 yield self._json_spec(topic, schema, msg), _dumps(msg), t_ns, t_ns
+
+    def _samples(self, layout: TimingLayout, counts: list[int]) -> dict[str, list[dict[str, float]]]:
+        """Per topic, the new samples as messages: the k-th holds each series' k-th new sample (ms)."""
+        out: dict[str, list[dict[str, float]]] = {PARTS_TOPIC: [], LATENCY_TOPIC: []}
+        nxt = self._next
+        for (topic, name, series), count in zip(layout.series, counts, strict=True):
+            key = (topic, name)
+            n = nxt.get(key, 0)
+            if count <= n:
+                continue
+            nxt[key] = count
+            first = series.first_readable()
+            if n < first:  # left the ring before the writer got to them
+                self.timing_dropped += min(first, count) - n
+                n = first
+            msgs = out[topic]
+            k = 0
+            for i in range(n, count):
+                v = _sample(series, i)
+                if v is _GONE:
+                    self.timing_dropped += 1
+                    continue
+                if v is None:  # a tick whose run condition skipped the part: no run, no sample
+                    continue
+                if k == len(msgs):
+                    msgs.append({})
+                msgs[k][name] = v * 1e3
+                k += 1
+        return out
+
+    def _tick_messages(
+        self, snap: TickSnapshot, layout: TimingLayout, times: TimeMap, t_ns: int
+    ) -> Iterator[tuple[ChannelSpec, bytes, int, int]]:
+        """One message per tick ended since the last snapshot, stamped with its start."""
+        p, table, end = layout.profiler, layout.table, snap.ticks
+        k = self._next_tick
+        if end <= k:
+            return
+        self._next_tick = end
+        first = p.tick.first_readable()
+        if k < first:
+            self.timing_dropped += min(first, end) - k
+            k = first
+        for tick in range(k, end):
+            figures = [_sample(s, tick) for s in (p.lateness, p.tick, p.overrun)]
+            start = table.start_of(tick) if table is not None else None
+            if _GONE in figures:
+                self.timing_dropped += 1
+                continue
+            own = tick == end - 1  # the counters the snapshot read are this tick's (it ended just before)
+            msg = {
+                "tick": tick + 1,
+                **{f: None if v is None else v * 1e3 for f, v in zip(_TICK_FIGURES, figures, strict=True)},
+                "overruns": snap.overruns if own else None,
+                "skipped_deadlines": snap.skipped if own else None,
+                "timing_dropped": self.timing_dropped,
+            }
+            ns = t_ns if start is None else times.to_ns(start)
+            yield self._json_spec(TICK_TOPIC, "asyncdonkey.Tick", msg), _dumps(msg), ns, ns
 
     def _json_spec(self, topic: str, name: str, example: dict[str, Any]) -> ChannelSpec:
         spec = self._specs.get(topic)
@@ -463,7 +600,26 @@ def _laser_scan(scan: Any, frame: str, stamp: Any) -> bytes:
 
 
 def _is_number(x: Any) -> bool:
-    return isinstance(x, int | float | np.number) and not isinstance(x, bool) and math.isfinite(float(x))
+    """A real number a float holds, finite (a 400-digit integer is not: ``float()`` overflows on it)."""
+    if isinstance(x, bool | np.bool_ | np.complexfloating) or not isinstance(x, int | float | np.number):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except (OverflowError, TypeError, ValueError):
+        return False
+
+
+_TICK_FIGURES = ("lateness_ms", "duration_ms", "overrun_ms")
+_GONE: Any = object()
+"""a sample that left its ring before it was read"""
+
+
+def _sample(series: Any, n: int) -> Any:
+    """Sample ``n`` of a profiler series read from the writer thread: its value, ``None`` (not a sample: a part
+    skipped on that tick), or :data:`_GONE` when it left the ring (checked after the read, so a slot reused
+    while it was read is never taken for the sample)."""
+    v = series.at(n)
+    return _GONE if n < series.first_readable() else v
 
 
 def _plain(v: Any) -> Any:

@@ -15,6 +15,11 @@ newest value of every other channel at that tick, ``_timestamp_ms`` from the tic
 counting records from 0. With ``run_condition`` (say ``"recording"``), only ticks where that channel was
 truthy become records, as a :class:`~asyncdonkey.parts.tub.TubWriter` with that run condition would have
 recorded them.
+
+A tick's messages are found by their record number, which the recorder writes in each message's ``sequence``
+field (:mod:`.sink`): two records may share a log time (a tub converted to MCAP stamps whole milliseconds, and
+Donkeycar may stamp several records in one). Files written before record numbers existed have ``sequence`` 0
+throughout; their messages are grouped by log time, as they were written.
 """
 
 from __future__ import annotations
@@ -59,6 +64,9 @@ class McapMessage:
     schema: str
     value: Any
     """JSON messages as dicts; protobuf messages as ``google.protobuf`` messages."""
+    sequence: int = 0
+    """the number of the record (tick) the message belongs to, from 1; 0 in files written before record
+    numbers (see :class:`McapTub`)"""
 
 
 @dataclass
@@ -123,7 +131,7 @@ def read_mcap(
                 if dec is None:
                     dec = decoders[ch.id] = _decoder(ch, schema)
                 value = dec(rec.data)
-            yield McapMessage(ch.topic, rec.log_time, rec.publish_time, name, value)
+            yield McapMessage(ch.topic, rec.log_time, rec.publish_time, name, value, rec.sequence)
 
 
 def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
@@ -195,6 +203,12 @@ def decode_image(msg: Any) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------ tub view
+def _record_key(m: McapMessage) -> tuple[int, int]:
+    """Which record a message belongs to: its record number, or (in files without them, ``sequence`` 0) its log
+    time."""
+    return (1, m.sequence) if m.sequence else (0, m.log_time_ns)
+
+
 class McapRecord(Mapping[str, Any]):
     """One record of a :class:`McapTub`; image keys decode their JPEG on access, like the tub's ``Record``."""
 
@@ -256,20 +270,23 @@ class McapTub:
     def records(self) -> Iterator[McapRecord]:
         image_topic = topic_for(self.image_key)
         latest: dict[str, Any] = {}
-        pending: tuple[int, Any] | None = None  # (log time, image message) of the tick being assembled
+        # the tick being assembled: (its key, its log time, its image message); the key is its record number,
+        # or its log time in a file without record numbers
+        pending: tuple[tuple[int, int], int, Any] | None = None
         index = 0
         for m in read_mcap(self.path):
-            if pending is not None and m.log_time_ns != pending[0]:
+            key = _record_key(m)
+            if pending is not None and key != pending[0]:
                 if self.run_condition is None or latest.get(self.run_condition):
-                    yield self._record(pending, latest, index)
+                    yield self._record(pending[1:], latest, index)
                     index += 1
                 pending = None
             if m.topic == image_topic:
-                pending = (m.log_time_ns, m.value)
+                pending = (key, m.log_time_ns, m.value)
             elif isinstance(m.value, dict) and "value" in m.value and m.topic.startswith("/"):
                 latest[m.topic[1:]] = m.value["value"]
         if pending is not None and (self.run_condition is None or latest.get(self.run_condition)):
-            yield self._record(pending, latest, index)
+            yield self._record(pending[1:], latest, index)
 
     def _record(self, pending: tuple[int, Any], latest: dict[str, Any], index: int) -> McapRecord:
         log_ns, image = pending

@@ -7,11 +7,15 @@ package (:func:`~.reader.read_mcap`), replay it (``asyncdonkey replay run.mcap``
 (``asyncdonkey convert``) or into a timing report (``asyncdonkey report``).
 
 The tick's cost is close to the tub writer's: :meth:`McapRecorder.run` copies two small dicts (values and
-origins: references, not the values), reads the profiler's tick count and appends a tuple to the queue of
-:class:`~asyncdonkey.parts.background_writer.BackgroundWriter` (bounded, drop newest, counted). The writer
-thread reads the timing from the profiler's ring buffers, encodes (JPEG, protobuf, JSON; :mod:`.encode`) and
-writes chunks; a sync point ends the chunk at most ``sync_interval_s`` after a record (:mod:`.sink` for what
-a crash or a full disk leaves).
+origins: references, not the values), notes how far the profiler's timing series have got (the ended ticks'
+count, plus one count per pipelined part and actuator: :class:`~.encode.TimingLayout`) and appends a tuple to
+the queue of :class:`~asyncdonkey.parts.background_writer.BackgroundWriter` (bounded, drop newest, counted).
+The writer thread reads the timing samples up to those counts from the profiler's ring buffers, each once
+(so every part run, latency and tick of the drive is in the file, however far behind the writer is, or
+counted as dropped if it left the ring first), encodes (JPEG, protobuf, JSON; :mod:`.encode`) and writes
+chunks; a sync point ends the chunk at most ``sync_interval_s`` after a record (:mod:`.sink` for what a crash
+or a full disk leaves). At shutdown the recorder adds the last tick's figures and the samples taken after its
+last run.
 
 Values must not be mutated after the tick that recorded them (the runtime's contract, as for the tub).
 """
@@ -21,14 +25,24 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from ...clock import get_clock
-from ..background_writer import BackgroundWriter
-from .encode import TickEncoder, TimeMap
+from ..background_writer import BackgroundWriter, WriterStats
+from .encode import TickEncoder, TimeMap, TimingLayout
 from .sink import McapSink
 
-__all__ = ["McapRecorder", "TickRecorder"]
+__all__ = ["McapRecorder", "RecorderStats", "TickRecorder"]
+
+
+@dataclass(frozen=True)
+class RecorderStats(WriterStats):
+    """:class:`~asyncdonkey.parts.background_writer.WriterStats` plus the timing samples lost."""
+
+    timing_dropped: int = 0
+    """timing samples (part runs, latencies, ticks) that left the profiler's ring before the writer thread read
+    them (it was more than the profiler's window behind): not in the file, also in each tick message."""
 
 
 class TickRecorder(BackgroundWriter):
@@ -41,6 +55,7 @@ class TickRecorder(BackgroundWriter):
 
     vehicle: Any
     _timing: bool
+    _layout: TimingLayout | None = None
 
     def _first_time(self) -> float:
         """Anchor the runtime clock to the wall clock on the first record (the loop is known only then); on the
@@ -74,18 +89,40 @@ class TickRecorder(BackgroundWriter):
         mem = v.mem
         t = self._now()
         if self._timing:
+            # _timing_snapshot, inlined (the tick's cost): how far the timing series have got, counts only
             p = v.profiler
+            layout = self._layout
+            if layout is None or p is not layout.profiler or layout.size != len(p.parts) + len(p.latency):
+                layout = self._layout = TimingLayout(p)
+            table = layout.table
+            rows = table.rows if table is not None else p.tick.count
+            counted = layout.counted
+            counts = [s.count for s in counted] if counted else ()
             drive = v.drive
             if drive is not None:
-                snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, drive.overruns, drive.skipped)
+                snap = (t, dict(mem.d), dict(mem.origins), rows, layout, drive.overruns, drive.skipped, counts)
             else:
-                snap = (t, dict(mem.d), dict(mem.origins), p.lateness.count, p, None, None)
+                snap = (t, dict(mem.d), dict(mem.origins), rows, layout, None, None, counts)
         else:
             snap = (t, dict(mem.d), dict(mem.origins), 0, None, None, None)
         q.append((t, time.monotonic(), snap))
         if n >= self._high_water:
             self._high_water = n + 1
         self._accepted += 1
+
+    def _timing_snapshot(self, t: float, values: dict[str, Any], origins: dict[str, float]) -> tuple[Any, ...]:
+        """A :class:`~.encode.TickSnapshot` with how far the drive's timing series have got now: counts only,
+        the samples stay in the profiler's rings until the writer thread reads them (:meth:`run` does the same
+        inline)."""
+        v = self.vehicle
+        layout = self._layout
+        if layout is None or not layout.current(v.profiler):
+            layout = self._layout = TimingLayout(v.profiler)
+        rows, counts = layout.capture()
+        drive = v.drive
+        if drive is not None:
+            return (t, values, origins, rows, layout, drive.overruns, drive.skipped, counts)
+        return (t, values, origins, rows, layout, None, None, counts)
 
 
 class McapRecorder(TickRecorder):
@@ -94,7 +131,7 @@ class McapRecorder(TickRecorder):
     ::
 
         rec = McapRecorder("data/drive.mcap", vehicle)
-        vehicle.add(rec, name="mcap")          # last, so every part's time of this tick is in
+        vehicle.add(rec, name="mcap")          # last, so it records the values this tick wrote
 
     Args:
         path: the ``.mcap`` file (created; an existing file is replaced).
@@ -112,7 +149,7 @@ class McapRecorder(TickRecorder):
         open_file: opens the file for writing, unbuffered (tests simulate a full disk with it).
 
     ``run()`` takes no inputs (it reads ``vehicle.mem``) and returns nothing; :attr:`stats` has the counters
-    (``written`` counts ticks).
+    (``written`` counts ticks; ``timing_dropped`` the timing samples the writer could no longer read).
     """
 
     def __init__(
@@ -160,6 +197,24 @@ class McapRecorder(TickRecorder):
             drain_timeout_s=drain_timeout_s,
             time_fn=self._first_time,
         )
+
+    def shutdown(self, timeout: float | None = None) -> None:
+        """As :meth:`BackgroundWriter.shutdown`, after queueing the timing the ticks could not carry: the last
+        tick's figures (a tick's are written when the next one records) and the samples taken since the last
+        recorded tick, so the file holds every sample of the drive. Samples a pipelined part takes after this
+        (a run still in flight while the car shuts down) are not in it."""
+        drive = self.vehicle.drive
+        if not self._closed and self._timing and drive is not None and self._sink.times is not None:
+            self._command(self._sink.write_timing, self._timing_snapshot(drive.last_end, {}, {}))
+        super().shutdown(timeout)
+
+    close = shutdown
+
+    @property
+    def stats(self) -> RecorderStats:
+        """The writer's counters (:class:`RecorderStats`), with the timing samples dropped."""
+        base = super().stats
+        return RecorderStats(**base.__dict__, timing_dropped=self.encoder.timing_dropped)
 
     def __repr__(self) -> str:
         return f"<McapRecorder {self.path}>"

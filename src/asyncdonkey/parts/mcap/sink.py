@@ -16,6 +16,14 @@ boundary, the chunk stays in memory and the next sync point retries it at the sa
 reservation also keeps room for a short ending (``DataEnd`` and a ``Footer`` without summary) behind the data,
 so a file closed on a full disk still ends cleanly: readers read it linearly to its end; only its summary
 (the index) and the ticks of the chunk that never got in are missing, the latter counted in :attr:`lost`.
+Where nothing can be reserved, that room is taken by writing the short ending itself behind the data at each
+sync point (the next one writes over it): the file then ends cleanly at every moment, after a ``kill -9`` too,
+and a write that fails half way is cut back to the data and that ending, written again in place (no new room).
+
+Records. Every message of one record (a tick, or a tub record converted) carries the record's number, from 1,
+in MCAP's per-message ``sequence`` field, so a reader groups a record's messages by it
+(:class:`~.reader.McapTub`) rather than by log time, which two records may share (a tub stamps whole
+milliseconds).
 """
 
 from __future__ import annotations
@@ -71,13 +79,16 @@ class _Spool:
     pending bytes all or none, see the module docstring.
     """
 
-    def __init__(self, file: IO[bytes], path: str, end_reserve: int) -> None:
+    def __init__(self, file: IO[bytes], path: str, ending: bytes) -> None:
         self._file = file
         self._path = path
-        self._end_reserve = end_reserve
+        self._ending = ending
         self._pending = bytearray()
         self.committed = 0
         """bytes in the file, all of them whole records"""
+        self.ends_cleanly = False
+        """the file holds the short ending right after the committed records (written where no blocks can be
+        reserved, see :meth:`commit`)"""
         self._can_reserve = _FALLOCATE is not None
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
@@ -100,22 +111,31 @@ class _Spool:
         if not self._pending:
             return
         data = bytes(self._pending)
-        self._reserve(len(data) + (self._end_reserve if keep_end_reserve else 0))
-        f = self._file
+        room = len(self._ending) if keep_end_reserve else 0
+        reserved = self._reserve(len(data) + room)
+        # nothing reserved: the room for the ending is taken by writing it, behind the data (overwritten next time)
+        tail = self._ending if room and not reserved else b""
         try:
-            f.seek(self.committed)
-            view = memoryview(data)
-            while view:
-                n = f.write(view)
-                if not n:
-                    raise OSError(errno.EIO, "write made no progress")
-                view = view[n:]
-            f.flush()
+            self._write_at(self.committed, data + tail)
+            if self.ends_cleanly and len(data) + len(tail) < len(self._ending):
+                self._file.truncate(self.committed + len(data) + len(tail))  # the old ending's last bytes
         except OSError as exc:
             self._cut_back()
             raise with_filename(exc, self._path) from exc
         self.committed += len(data)
+        self.ends_cleanly = bool(tail)
         self._pending.clear()
+
+    def _write_at(self, offset: int, data: bytes) -> None:
+        f = self._file
+        f.seek(offset)
+        view = memoryview(data)
+        while view:
+            n = f.write(view)
+            if not n:
+                raise OSError(errno.EIO, "write made no progress")
+            view = view[n:]
+        f.flush()
 
     def discard(self) -> int:
         """Forget the pending bytes; returns how many there were."""
@@ -123,25 +143,35 @@ class _Spool:
         self._pending.clear()
         return n
 
-    def _reserve(self, length: int) -> None:
+    def _reserve(self, length: int) -> bool:
         """Allocate ``length`` bytes after the committed end without changing the file's size, so that writing
-        them cannot fail for want of space. Raises ``OSError(ENOSPC)`` on a full disk, before anything is
-        written; does nothing where the OS or the file system cannot (the write then finds out)."""
+        them cannot fail for want of space; True when done. Raises ``OSError(ENOSPC)`` on a full disk, before
+        anything is written; False where the OS or the file system cannot (the write then finds out)."""
         if not self._can_reserve or _FALLOCATE is None:
-            return
+            return False
         if _FALLOCATE(self._file.fileno(), _FALLOC_FL_KEEP_SIZE, self.committed, length) == 0:
-            return
+            return True
         err = ctypes.get_errno()
         if err in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.ENODEV):
             self._can_reserve = False  # a file system without it (or not a regular file): write and see
-            return
+            return False
         raise OSError(err, os.strerror(err), self._path)
 
     def _cut_back(self) -> None:
-        """Remove a partial write, so the file ends after its last complete record again."""
+        """Remove a partial write, so the file ends after its last complete record again, and with the short
+        ending behind it if it had one: written again over the partial bytes, in place, where the old ending
+        was (it needs no new room)."""
+        f = self._file
+        if self.ends_cleanly:
+            try:
+                self._write_at(self.committed, self._ending)
+                f.truncate(self.committed + len(self._ending))
+                return
+            except OSError:
+                self.ends_cleanly = False
         try:
-            self._file.truncate(self.committed)
-            self._file.seek(self.committed)
+            f.truncate(self.committed)
+            f.seek(self.committed)
         except OSError as exc:  # pragma: no cover - truncating frees space, it does not need any
             logger.error("%s: could not cut off a partial write: %r", self._path, exc)
 
@@ -183,7 +213,7 @@ class McapSink:
         self._chunk_size = chunk_size
         self._ending = _short_ending()
         self._file: IO[bytes] = (open_file or _open)(self.path)
-        self._spool = _Spool(self._file, self.path, len(self._ending))
+        self._spool = _Spool(self._file, self.path, self._ending)
         self._writer = Writer(self._spool, chunk_size=chunk_size, compression=comp[compression])  # type: ignore[arg-type]
         self._writer.start(profile=PROFILE, library="asyncdonkey")
         try:
@@ -238,13 +268,26 @@ class McapSink:
             if self._metadata:
                 w.add_metadata(SESSION_METADATA, self._metadata)
             self._anchored = True
+        seq = _sequence(self._written + 1)
         for spec, data, log_ns, pub_ns in self.encoder.encode(snap, times):
-            w.add_message(self._channel(spec), log_ns, data, pub_ns)
+            w.add_message(self._channel(spec), log_ns, data, pub_ns, seq)
             self.messages += 1
         self._written += 1
         self.unsynced += 1
         if self._spool.pending >= self._chunk_size:
             self.sync_requested = True  # a chunk ended by size: write it out rather than hold it in memory
+
+    def write_timing(self, payload: tuple[Any, ...]) -> None:
+        """Add the timing due at ``payload`` (a :class:`~.encode.TickSnapshot` without values) to the open chunk,
+        as part of the last record: the recorder's last word at shutdown, the last tick's figures and the samples
+        taken after its last run."""
+        times = self.times
+        if times is None or self._closed:
+            return
+        seq = _sequence(max(1, self._written))
+        for spec, data, log_ns, pub_ns in self.encoder.timing_messages(TickSnapshot(*payload), times):
+            self._writer.add_message(self._channel(spec), log_ns, data, pub_ns, seq)
+            self.messages += 1
 
     def sync(self) -> bool:
         """End the open chunk and write it to the file, then (with ``fsync``) to the device.
@@ -296,20 +339,28 @@ class McapSink:
     def _close_short(self, exc: OSError) -> OSError:
         """The disk has no room for the rest: end the file after its last complete chunk; returns the error to
         raise, which says how many ticks are lost and how the file ends."""
-        self._spool.discard()
+        spool = self._spool
+        spool.discard()
         self.lost = self._written - self._in_file
         self.unsynced = 0
-        self._spool.write(self._ending)
-        try:
-            self._spool.commit(keep_end_reserve=False)
-            if self.fsync:
-                os.fsync(self._file.fileno())
-            how = "it ends after its last complete chunk, without a summary (readers read it linearly)"
-        except OSError:
-            self._spool.discard()
-            how = "it ends after its last complete chunk, without a footer (readers stop there)"
+        how = "it ends after its last complete chunk, without a summary (readers read it linearly)"
+        if not spool.ends_cleanly:  # else the ending is there already, behind the last chunk
+            spool.write(self._ending)
+            try:
+                spool.commit(keep_end_reserve=False)
+                if self.fsync:
+                    os.fsync(self._file.fileno())
+            except OSError:
+                spool.discard()
+                how = "it ends after its last complete chunk, without a footer (readers stop there)"
         return OSError(exc.errno, f"{exc.strerror or exc}: {self.lost} ticks not written; {how}", self.path)
 
 
 def _open(path: str) -> IO[bytes]:
     return open(path, "wb", buffering=0)
+
+
+def _sequence(record: int) -> int:
+    """Record number ``record`` (from 1) as MCAP's uint32 ``sequence``; after 2**32 - 1 records (six years at
+    20 Hz) it wraps to 1, never to 0, which marks files written without record numbers."""
+    return (record - 1) % 0xFFFFFFFF + 1

@@ -91,7 +91,8 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
     from .parts.mcap.reader import read_mcap
 
     d = DriveTiming(os.fspath(path), "mcap")
-    ticks: dict[int, list[Any]] = {}  # tick number → [log ns, lateness, duration, overrun, overruns, skipped]
+    # tick number → [log ns, lateness, duration, overrun, overruns, skipped, when the counters were read (ns)]
+    ticks: dict[int, list[Any]] = {}
     parts: dict[str, list[float]] = {}
     lat: dict[str, list[tuple[int, float]]] = {}
     for m in read_mcap(path, {TICK_TOPIC, PARTS_TOPIC, LATENCY_TOPIC}):
@@ -112,7 +113,7 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
     rows = [ticks[k] for k in started]
     d.t = np.array([(r[0] - t0) / 1e9 for r in rows])
     d.lateness_ms, d.duration_ms, d.overrun_ms = (np.array([_num(r[i]) for r in rows]) for i in (1, 2, 3))
-    _counters(d, rows)
+    _counters(d, rows, t0)
     d.parts = {k: np.array(v) for k, v in parts.items()}
     d.latency = {k: (np.array([(a - t0) / 1e9 for a, _ in v]), np.array([b for _, b in v])) for k, v in lat.items()}
     if len(d.t) > 2:
@@ -127,15 +128,16 @@ def _add_tick(ticks: dict[int, list[Any]], log_ns: int, v: dict[str, Any]) -> No
     k = v.get("tick")
     if not isinstance(k, int):
         return
-    row = ticks.setdefault(k, [None] * 6)
+    row = ticks.setdefault(k, [None] * 7)
     row[0], row[1] = log_ns, v.get("lateness_ms")
     own = "timing_dropped" in v
-    ended = row if own else ticks.setdefault(k - 1, [None] * 6)  # the tick the figures and counters are of
+    ended = row if own else ticks.setdefault(k - 1, [None] * 7)  # the tick the figures and counters are of
     ended[2], ended[3] = v.get("duration_ms"), v.get("overrun_ms")
     ended[4], ended[5] = v.get("overruns"), v.get("skipped_deadlines")
+    ended[6] = None if own else log_ns  # an older file's counters were read by the next tick's recorder run
 
 
-def _counters(d: DriveTiming, rows: list[list[Any]]) -> None:
+def _counters(d: DriveTiming, rows: list[list[Any]], t0: int) -> None:
     """The drive's overrun and skipped-deadline counts, and where deadlines were skipped: at the end of the tick
     whose counters show more than the last known ones (a tick's counters are read after it ended)."""
     last_skipped = 0
@@ -146,7 +148,10 @@ def _counters(d: DriveTiming, rows: list[list[Any]]) -> None:
         if not isinstance(skipped, int):
             continue
         if skipped > last_skipped:
-            end = d.t[i] + (d.duration_ms[i] / 1e3 if math.isfinite(d.duration_ms[i]) else 0.0)
+            if r[6] is not None:  # an older file: when the next tick's recorder read them
+                end = (r[6] - t0) / 1e9
+            else:
+                end = d.t[i] + (d.duration_ms[i] / 1e3 if math.isfinite(d.duration_ms[i]) else 0.0)
             d.skipped_at.append((float(end), skipped - last_skipped))
         last_skipped = max(last_skipped, skipped)
     d.skipped_deadlines = last_skipped

@@ -22,7 +22,9 @@ from __future__ import annotations
 import asyncio
 import errno
 import io
+import json
 
+import numpy as np
 import pytest
 
 import asyncdonkey.parts.background_writer as background_writer
@@ -242,3 +244,37 @@ async def test_samples_that_left_the_ring_before_the_writer_read_them_are_counte
     d = load_timing(path)
     assert d.timing_dropped == s.timing_dropped
     assert f"<b>{s.timing_dropped}</b> timing samples are not in this recording" in render_html(d)
+
+
+def test_the_report_reads_files_whose_tick_messages_carried_the_previous_ticks_duration(tmp_path):
+    """Before each tick message carried its own tick's figures (and ``timing_dropped``), it carried the duration
+    and overrun of the tick before it, and the counters the recorder read then; such files still read right."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "old.mcap"
+    durations = [10.0, 170.0, 12.0, 11.0]  # tick 2 overran, 2 deadlines skipped after it
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("asyncdonkey.Tick", "jsonschema", b"{}")
+        cid = w.register_channel(TICK_TOPIC, "json", sid)
+        starts = [0.0, 0.05, 0.25, 0.30, 0.35]
+        for k in range(1, 6):
+            prev = durations[k - 2] if k > 1 else None
+            msg = {
+                "tick": k,
+                "lateness_ms": 20.0 if k == 3 else 0.0,
+                "duration_ms": prev,
+                "overrun_ms": None if prev is None else max(0.0, prev - 50.0),
+                "overruns": 1 if k >= 3 else 0,
+                "skipped_deadlines": 2 if k >= 3 else 0,
+            }
+            ns = int(starts[k - 1] * 1e9)
+            w.add_message(cid, ns, json.dumps(msg).encode(), ns)
+        w.finish()
+    d = load_timing(path)
+    assert d.t.size == 5 and list(d.lateness_ms) == [0.0, 0.0, 20.0, 0.0, 0.0]
+    assert list(d.duration_ms[:4]) == durations and np.isnan(d.duration_ms[4])  # each tick's own, the last unknown
+    assert list(d.overrun_ms[:4]) == [0.0, 120.0, 0.0, 0.0]
+    assert d.overruns == 1 and d.skipped_deadlines == 2 and d.skipped_at == [(0.25, 2)]
+    assert render_html(d).count("overran by") == 1

@@ -295,13 +295,51 @@ def virtual_clock_rows(d: dict[str, Any]) -> list[Row]:
     return [("virtual clock", f"{ticks}{what} (s)", _fmt(d.get(key), 3), "", "") for what, key in figures]
 
 
+def _bytes(n: Any) -> str:
+    return f"{n:,}" if isinstance(n, int) else "n/a"
+
+
 def zenoh_rows(d: dict[str, Any]) -> list[Row]:
-    """Channels over Zenoh: our figure, with raw Zenoh's (the floor) in the figure's name; no Donkeycar column."""
+    """Channels over Zenoh: our figure, with raw Zenoh's (the floor) in the figure's name; no Donkeycar column.
+
+    The trip is the off-board pilot's: car -> pilot -> car through the parts, against the same trip in raw Zenoh
+    on the same sessions; figures saved before it (``round_trip``: one send and one receive through an echo)
+    show as what they were."""
     rows: list[Row] = []
-    for name, r in (d.get("round_trip") or {}).items():
+    trip = d.get("trip") or {}
+    for mode, where in (("two_process", "pilot in another process"), ("one_process", "pilot in the car's process")):
+        t = trip.get(mode) or {}
+        load = t.get("load") or {}
+        for name, r in (t.get("trips") or {}).items():
+            ours, raw, ratio = r.get("ours") or {}, r.get("raw") or {}, r.get("ours_over_raw") or {}
+            q = ("p50_ms", "p90_ms", "p99_ms")
+            times = ", ".join(f"{_fmt(ratio.get(k[:3]))}x" for k in q)
+            figure = (
+                f"car→pilot→car trip p50 / p90 / p99 (ms; raw Zenoh {' / '.join(_fmt(raw.get(k), 3) for k in q)};"
+                f" ours/raw {times}; {_bytes(r.get('bytes_out'))} B out, {_bytes(r.get('bytes_back'))} B back;"
+                f" medians of {t.get('rounds')} rounds of {t.get('trips_per_round')})"
+            )
+            rows.append((f"zenoh {name}, {where}", figure, " / ".join(_fmt(ours.get(k), 3) for k in q), "", ""))
+        if load:
+            rows.append(
+                (
+                    f"zenoh trips, {where}",
+                    "machine CPU busy during the trips (% of all cores; of it the car and pilot processes)",
+                    f"{_fmt(load.get('busy_pct'), 0)} ({_fmt(load.get('benchmark_busy_pct'), 0)})",
+                    "",
+                    "",
+                )
+            )
+    for name, r in (d.get("round_trip") or {}).items():  # figures saved before the car->pilot->car trip
         floor = _fmt(_get(r, "raw", "p50_ms"), 3)
         rows.append(
-            (f"zenoh {name}", f"round trip p50 (ms; raw Zenoh {floor})", _fmt(_get(r, "channel", "p50_ms"), 3), "", "")
+            (
+                f"zenoh {name}",
+                f"one send + one receive through an echo p50 (ms; raw Zenoh {floor})",
+                _fmt(_get(r, "channel", "p50_ms"), 3),
+                "",
+                "",
+            )
         )
     for name, r in (d.get("throughput") or {}).items():
         floor = _fmt(_get(r, "raw", "received_per_s"), 0)
@@ -328,6 +366,9 @@ def zenoh_rows(d: dict[str, Any]) -> list[Row]:
             )
         )
         rows.append((f"zenoh 20 Hz, {name}", "added CPU (ms per s)", _fmt(r.get("added_cpu_ms_per_s"), 1), "", ""))
+        pub = _get(r, "publisher", "p50_ms")
+        if pub is not None:
+            rows.append((f"zenoh 20 Hz, {name}", "publisher time per tick p50 (ms)", _fmt(pub, 3), "", ""))
     return rows
 
 

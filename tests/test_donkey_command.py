@@ -29,6 +29,8 @@ import asyncdonkey
 from asyncdonkey.cli import main
 from asyncdonkey.donkey import DonkeycarVehicle, DriveOptions, run_manage_py
 
+pytestmark = [pytest.mark.donkeycar]
+
 TEMPLATES = Path(donkeycar.__file__).parent / "templates"
 
 
@@ -94,6 +96,9 @@ async def drive_through_the_web_page(
     ws.close()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.subprocess
 def test_a_donkeycar_car_drives_unchanged_with_one_command(tmp_path):
     port = free_port()
     car = tmp_path / "mycar"
@@ -180,6 +185,7 @@ with open("result.txt", "w") as f:
 '''
 
 
+@pytest.mark.realtime
 def test_run_manage_py_puts_our_vehicle_in_place_and_restores_everything(tmp_path, monkeypatch):
     car = tmp_path / "car"
     car.mkdir()
@@ -195,6 +201,7 @@ def test_run_manage_py_puts_our_vehicle_in_place_and_restores_everything(tmp_pat
     assert not issubclass(donkeycar.vehicle.Vehicle, asyncdonkey.Vehicle)
 
 
+@pytest.mark.realtime
 def test_command_line_options_override_the_cars_start_arguments(tmp_path):
     car = tmp_path / "car"
     car.mkdir()
@@ -204,6 +211,7 @@ def test_command_line_options_override_the_cars_start_arguments(tmp_path):
     assert options.reports[0].loops == 3
 
 
+@pytest.mark.realtime
 def test_a_failing_part_stops_the_car_and_exits_1(tmp_path, capsys):
     car = tmp_path / "car"
     car.mkdir()
@@ -214,6 +222,7 @@ def test_a_failing_part_stops_the_car_and_exits_1(tmp_path, capsys):
     assert not (car / "result.txt").exists()  # start() raised: the car did not carry on as if it had ended
 
 
+@pytest.mark.realtime
 def test_the_report_of_a_drive_that_failed_is_kept(tmp_path):
     car = tmp_path / "car"
     car.mkdir()

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.realtime]
+
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 ROUNDS = 2
 
@@ -37,6 +39,8 @@ def figures() -> dict:
     return json.loads(proc.stdout)
 
 
+@pytest.mark.donkeycar
+@pytest.mark.subprocess
 def test_every_configuration_runs_every_round(figures: dict) -> None:
     rates = figures["rates"]
     assert sorted(rates, key=int) == ["20", "100", "1000"]
@@ -58,6 +62,8 @@ def test_every_configuration_runs_every_round(figures: dict) -> None:
                 assert r["lateness_p99_ms_median_of_rounds"] <= r["lateness_max_ms"], who
 
 
+@pytest.mark.donkeycar
+@pytest.mark.subprocess
 def test_ratios_are_per_round(figures: dict) -> None:
     for row in [*figures["rates"].values(), figures["idle"]]:
         dk = row["donkeycar"]["cpu_pct_rounds"]
@@ -70,6 +76,8 @@ def test_ratios_are_per_round(figures: dict) -> None:
         assert "cpu_ratio" not in row["floor"] and "cpu_ratio" not in row["donkeycar"]
 
 
+@pytest.mark.donkeycar
+@pytest.mark.subprocess
 def test_timing_comes_from_the_long_runs(figures: dict) -> None:
     # the first round runs the cars for --ticks (x5 at 1 kHz): the rate error's run; Donkeycar's lateness
     # (which grows with its drift) comes from it alone, ours is pooled over every segment
@@ -83,6 +91,8 @@ def test_timing_comes_from_the_long_runs(figures: dict) -> None:
     )
 
 
+@pytest.mark.donkeycar
+@pytest.mark.subprocess
 def test_run_all_builds_the_readme_rows(figures: dict) -> None:
     run_all = _module("run_all")
     rows = run_all.loop_rows(figures)
@@ -109,6 +119,8 @@ def test_run_all_builds_the_readme_rows(figures: dict) -> None:
     assert table.count("| loop") == len(rows)
 
 
+@pytest.mark.donkeycar
+@pytest.mark.subprocess
 def test_run_all_names_the_skipped_deadlines_behind_a_rate_error(figures: dict) -> None:
     run_all = _module("run_all")
     stalled = json.loads(json.dumps(figures))
@@ -123,6 +135,7 @@ def test_run_all_names_the_skipped_deadlines_behind_a_rate_error(figures: dict) 
     assert rows[("loop 100 Hz", "rate error (ppm)")] == "< 40"
 
 
+@pytest.mark.donkeycar
 def test_the_safety_benchmark_takes_its_per_part_overhead_from_the_loop_benchmark():
     """benchmarks/safety.py reuses the loop benchmark's measure: a rename there must not break it silently."""
     out = _module("safety").loop_overhead(300)
@@ -130,6 +143,7 @@ def test_the_safety_benchmark_takes_its_per_part_overhead_from_the_loop_benchmar
     assert out["donkeycar_us"] > 0  # make test installs Donkeycar
 
 
+@pytest.mark.subprocess
 def test_the_wake_benchmark_measures_every_way_of_waiting_and_makes_its_readme_row():
     """``benchmarks/wake.py`` end to end in a second (tiny repetitions): every way of waiting woke and cost
     something, and run_all names them all in one row beside a thread's sleep."""

@@ -150,6 +150,7 @@ def test_donkey_shaped_model_has_two_one_value_outputs_in_both_layouts(tmp_path)
     assert not np.allclose(np.ravel(a), np.ravel(c))
 
 
+@pytest.mark.subprocess
 def test_importing_the_module_does_not_need_onnx(tmp_path):
     code = (
         "import sys; sys.modules['onnx'] = None\n"

@@ -187,6 +187,7 @@ def test_records_reach_the_pilot_at_their_recorded_times(recorded):
     assert report.late_ms_max == 0.0
 
 
+@pytest.mark.realtime
 def test_real_time_speed_keeps_the_recorded_pace(tmp_path):
     tub = record_tub(tmp_path / "tub", ticks=29)  # 28 gaps of 50 ms: 1.4 s recorded
     fds = set(os.listdir("/proc/self/fd"))
@@ -325,6 +326,7 @@ def test_library_errors_name_what_is_wrong(tmp_path, recorded):
 
 
 # ------------------------------------------------------------------------------------------------ CLI
+@pytest.mark.subprocess
 def test_cli_table_json_and_csv_match_the_library(recorded, model, tmp_path):
     lib = replay(recorded, model, csv_path=tmp_path / "lib.csv")
     table = run_cli(recorded, "--pilot", model)
@@ -342,6 +344,7 @@ def test_cli_table_json_and_csv_match_the_library(recorded, model, tmp_path):
     assert (tmp_path / "cli.csv").read_bytes() == (tmp_path / "lib.csv").read_bytes()
 
 
+@pytest.mark.subprocess
 def test_cli_errors_are_one_line_with_exit_2(recorded, model, tmp_path):
     assert_one_line_error(run_cli(tmp_path / "missing", "--pilot", model), "missing", "no such tub directory")
     (tmp_path / "empty").mkdir()
@@ -375,6 +378,7 @@ def write_long_tub(path: Path, records: int, rows: int, cols: int) -> Path:
     return path
 
 
+@pytest.mark.realtime
 def test_ten_minutes_at_20_hz_replay_in_seconds(tmp_path):
     rows, cols = 24, 32  # small frames keep the recording quick; the replay path is the same
     path = write_long_tub(tmp_path / "long", records=12_000, rows=rows, cols=cols)

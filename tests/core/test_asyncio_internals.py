@@ -31,6 +31,7 @@ def test_the_loop_refuses_to_start_on_a_python_whose_internals_changed(monkeypat
         virtual_loop.VirtualClockLoop()
 
 
+@pytest.mark.realtime
 def test_a_thread_blocked_with_and_without_timeout_is_told_apart():
     import time
 

@@ -244,6 +244,7 @@ async def test_a_test_turns_the_default_off_with_the_marker():
     assert not report.checked and math.isnan(esc.commands[0])
 
 
+@pytest.mark.subprocess
 def test_off_by_default_on_the_car():
     code = textwrap.dedent(
         """

@@ -35,31 +35,37 @@ def assert_one_line_error(proc, *fragments):
         assert f in lines[0]
 
 
+@pytest.mark.subprocess
 def test_version():
     proc = run_cli("--version")
     assert proc.returncode == 0
     assert proc.stdout.strip() == f"asyncdonkey {asyncdonkey.__version__}"
 
 
+@pytest.mark.subprocess
 def test_missing_file(tmp_path):
     assert_one_line_error(run_cli("run", str(tmp_path / "nope.py")), "nope.py", "not found")
 
 
+@pytest.mark.subprocess
 def test_syntax_error_names_file_and_line(tmp_path):
     car = write(tmp_path, "car.py", "import math\ndef build(:\n    pass\n")
     assert_one_line_error(run_cli("run", str(car)), "car.py:2", "syntax error")
 
 
+@pytest.mark.subprocess
 def test_no_build(tmp_path):
     car = write(tmp_path, "car.py", "X = 1\n")
     assert_one_line_error(run_cli("run", str(car)), "defines no build() function")
 
 
+@pytest.mark.subprocess
 def test_wrong_return_type(tmp_path):
     car = write(tmp_path, "car.py", "def build():\n    return 42\n")
     assert_one_line_error(run_cli("run", str(car)), "build() returned int, expected an asyncdonkey.Vehicle")
 
 
+@pytest.mark.subprocess
 def test_import_error_is_one_line(tmp_path):
     car = write(tmp_path, "car.py", "import no_such_module_xyz\n")
     assert_one_line_error(run_cli("run", str(car)), "ModuleNotFoundError", "no_such_module_xyz")
@@ -91,6 +97,7 @@ CAR = """
 """
 
 
+@pytest.mark.subprocess
 def test_run_with_max_loops_and_car_args(tmp_path):
     car = write(tmp_path, "car.py", CAR)
     marker = tmp_path / "shutdown.txt"
@@ -100,6 +107,7 @@ def test_run_with_max_loops_and_car_args(tmp_path):
     assert "Part Profile Summary" in proc.stderr and "loops: 7" in proc.stderr
 
 
+@pytest.mark.subprocess
 def test_run_in_precise_mode_on_uvloop(tmp_path):
     car = write(tmp_path, "car.py", CAR)
     marker = tmp_path / "shutdown.txt"
@@ -108,6 +116,8 @@ def test_run_in_precise_mode_on_uvloop(tmp_path):
     assert marker.read_text() == "neutral after 5 ticks"
 
 
+@pytest.mark.realtime
+@pytest.mark.subprocess
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_shuts_down_cleanly_with_final_report(tmp_path, sig):
     car = write(tmp_path, "car.py", CAR)
@@ -130,6 +140,7 @@ def test_signal_shuts_down_cleanly_with_final_report(tmp_path, sig):
     assert "achieved: " in err and "of 50 Hz" in err  # DRIVE_LOOP_HZ from the car file
 
 
+@pytest.mark.subprocess
 def test_part_failure_exit_code_and_message(tmp_path):
     car = write(
         tmp_path,
@@ -157,6 +168,7 @@ def test_part_failure_exit_code_and_message(tmp_path):
     assert 'raise KeyError("cam/image_array")' in verbose.stderr
 
 
+@pytest.mark.subprocess
 def test_car_file_with_dataclasses_and_postponed_annotations(tmp_path):
     """The car file is imported like a module (registered in sys.modules), so a dataclass settings object
     under ``from __future__ import annotations`` works as it does in any imported file."""

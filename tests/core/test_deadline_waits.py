@@ -64,6 +64,7 @@ async def _lateness_of_waits(waiter: DeadlineWaiter, n: int, spacing_s: float) -
     return late
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_waits_never_return_early_and_are_not_far_late(loop_factory, wait_mode):
     async def main():
@@ -79,6 +80,7 @@ def test_waits_never_return_early_and_are_not_far_late(loop_factory, wait_mode):
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_a_deadline_already_passed_returns_at_once(loop_factory, wait_mode):
     async def main():
@@ -91,6 +93,7 @@ def test_a_deadline_already_passed_returns_at_once(loop_factory, wait_mode):
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_wake_cuts_a_long_wait_short_and_the_waiter_goes_on(loop_factory, wait_mode):
     async def main():
@@ -109,6 +112,7 @@ def test_wake_cuts_a_long_wait_short_and_the_waiter_goes_on(loop_factory, wait_m
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_wake_from_another_thread_cuts_the_wait_short(loop_factory, wait_mode):
     async def main():
@@ -124,6 +128,7 @@ def test_wake_from_another_thread_cuts_the_wait_short(loop_factory, wait_mode):
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_same_wake_future_across_many_waits_then_completed(loop_factory, wait_mode):
     """The drive loop passes one wake future for every tick; completing it ends the current wait only."""
@@ -141,6 +146,7 @@ def test_same_wake_future_across_many_waits_then_completed(loop_factory, wait_mo
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_a_cancelled_wait_raises_and_leaves_the_waiter_usable(loop_factory, wait_mode):
     async def main():
@@ -156,6 +162,7 @@ def test_a_cancelled_wait_raises_and_leaves_the_waiter_usable(loop_factory, wait
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_one_wait_at_a_time_per_waiter(loop_factory):
     async def main():
@@ -169,6 +176,7 @@ def test_one_wait_at_a_time_per_waiter(loop_factory):
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_closing_during_a_wait_finishes_it_on_the_loop_timers(loop_factory):
     async def main():
@@ -185,6 +193,7 @@ def test_closing_during_a_wait_finishes_it_on_the_loop_timers(loop_factory):
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
     def no_timerfd() -> _timerfd.Timerfd:
         raise OSError(24, "Too many open files")
@@ -201,6 +210,7 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 
 
 # ---------------------------------------------------------------------------------------------- precise mode
+@pytest.mark.realtime
 @pytest.mark.parametrize("sleeps", [1, 2])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, sleeps, monkeypatch):
@@ -244,6 +254,7 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
     run_on(loop_factory, main())
 
 
+@pytest.mark.realtime
 def test_precise_spin_stays_within_its_budget_of_the_period():
     """However late the machine has been waking, the spin before each deadline is at most SPIN_BUDGET of the
     time between deadlines: a 4 ms window on a 5 ms period would burn most of a core, the budget 3 %."""
@@ -265,6 +276,7 @@ def test_precise_spin_stays_within_its_budget_of_the_period():
     run_on(uvloop.new_event_loop, main())
 
 
+@pytest.mark.realtime
 def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
     v = Vehicle()
     stamps: list[float] = []
@@ -290,6 +302,7 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
     assert report.precise_sleeps is None
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("two", [True, False], ids=["two-sleeps", "one-sleep"])
 def test_the_report_says_how_many_times_precise_ticks_slept(two, monkeypatch):
     """A drive at a rate where the process learned two sleeps pays off reports 2; where one is enough, 1."""
@@ -325,6 +338,7 @@ async def test_precise_mode_on_the_virtual_clock_is_the_exact_timer():
 
 
 # ---------------------------------------------------------------------------------------------- stop()
+@pytest.mark.realtime
 @pytest.mark.parametrize("use_uvloop", [False, True], ids=["asyncio", "uvloop"])
 def test_stop_from_a_thread_cuts_a_long_tick_wait_short(use_uvloop):
     v = Vehicle()
@@ -338,6 +352,7 @@ def test_stop_from_a_thread_cuts_a_long_tick_wait_short(use_uvloop):
 
 
 # ---------------------------------------------------------------------------------------------- leaks
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_no_file_descriptor_left_after_many_waits_sleeps_and_drives(loop_factory):
     gc.collect()
@@ -366,6 +381,7 @@ def test_no_file_descriptor_left_after_many_waits_sleeps_and_drives(loop_factory
     assert open_fds() - before == set()
 
 
+@pytest.mark.realtime
 def test_an_unclosed_waiter_releases_its_timerfd_with_its_loop():
     gc.collect()
     before = open_fds()
@@ -381,6 +397,7 @@ def test_an_unclosed_waiter_releases_its_timerfd_with_its_loop():
 
 
 # ---------------------------------------------------------------------------------------------- the poller
+@pytest.mark.realtime
 def test_poller_reads_in_its_own_thread_on_a_real_loop_and_stops_promptly():
     names: list[str] = []
     stamps: list[float] = []
@@ -413,6 +430,7 @@ def test_poller_reads_in_its_own_thread_on_a_real_loop_and_stops_promptly():
     assert not any(t.name == "poll:imu" for t in threading.enumerate())
 
 
+@pytest.mark.realtime
 def test_poller_thread_counts_errors_and_skips_when_reads_overrun():
     n = {"i": 0}
 
@@ -438,6 +456,7 @@ def test_poller_thread_counts_errors_and_skips_when_reads_overrun():
     assert isinstance(poller.last_error, OSError)
 
 
+@pytest.mark.realtime
 def test_a_cancel_message_reaches_the_waiting_task():
     async def main():
         with DeadlineWaiter() as waiter:
@@ -468,6 +487,7 @@ def _through(deadlines: list[float], done: asyncio.Future[None]) -> tuple[Callab
 # ------------------------------------------------------------------------------------------- call_at
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("precise", [False, True], ids=["default", "precise"])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_call_at_runs_a_periodic_callback_never_early_until_it_returns_none(loop_factory, wait_mode, precise):
@@ -491,6 +511,7 @@ def test_call_at_runs_a_periodic_callback_never_early_until_it_returns_none(loop
     assert waiter.waits == len(deadlines)
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_call_at_is_dropped_by_cancel_call_and_a_past_deadline_is_not_called_inline(loop_factory, wait_mode):
     async def main() -> tuple[list[str], list[str]]:
@@ -530,6 +551,7 @@ async def test_call_at_on_the_virtual_clock_fires_at_exact_deadlines():
     assert -1.0 not in seen
 
 
+@pytest.mark.realtime
 def test_an_all_sync_car_ticks_from_the_timer_and_a_car_with_an_async_part_from_its_task():
     """Both ways of driving ticks give the same report on a real loop: ticks never early, none skipped."""
 
@@ -778,6 +800,7 @@ def _record_arms(tfd: _timerfd.Timerfd | None) -> list[int]:
     return armed
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loop_factory):
     """On the grid, the kernel moves the timer on by itself: one arming for the whole series. A deadline off
@@ -834,6 +857,7 @@ def test_call_at_with_a_period_arms_the_timer_once_for_deadlines_on_its_grid(loo
     assert after == (0, 0)  # the series ended: disarmed
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize(
     ("period", "learned_once", "sleeps"),
     [(0.02, False, 2), (0.02, True, 1), (0.001, False, 1)],
@@ -901,6 +925,7 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
         assert len(armed) <= n + 1
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(loop_factory, monkeypatch):
     """The loop is held past the end of the guard sleep until just before the spin window: too close for a
@@ -927,6 +952,7 @@ def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(l
     assert armed == [math.ceil((target - clock._GUARD_S) * 1e9)]  # the guard sleep only
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_call_at_with_a_period_follows_a_callback_that_raises_and_stops_its_timer(loop_factory):
     async def main() -> tuple[int, tuple[int, int], BaseException | None]:
@@ -953,6 +979,7 @@ def test_call_at_with_a_period_follows_a_callback_that_raises_and_stops_its_time
     assert isinstance(error, RuntimeError)
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("end", ["returns None", "cancel_call", "raises", "new series"])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_factory, end):
@@ -1012,6 +1039,7 @@ def test_after_a_periodic_series_the_waiter_waits_and_calls_back_as_before(loop_
         assert all(d <= t < d + GENEROUS_S for d, t in second)  # on its own deadlines, 2 x the first's period
 
 
+@pytest.mark.realtime
 def test_call_at_period_must_be_positive():
     async def main() -> None:
         with DeadlineWaiter() as waiter:
@@ -1022,6 +1050,7 @@ def test_call_at_period_must_be_positive():
     run_on(uvloop.new_event_loop, main())
 
 
+@pytest.mark.realtime
 def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypatch):
     """``early=True``: the callback runs when the early timer wakes (the spin window before the deadline) and
     spins the rest itself; without it the waiter spins and the callback never runs before its deadline."""
@@ -1061,7 +1090,14 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypat
     assert window != clock._WINDOW_START_S or window == clock._WINDOW_CEIL_S  # learned from the arrivals
 
 
-@pytest.mark.parametrize("loop_factory", [asyncio.new_event_loop, uvloop.new_event_loop, VirtualClockLoop])
+@pytest.mark.parametrize(
+    "loop_factory",
+    [
+        pytest.param(asyncio.new_event_loop, marks=pytest.mark.realtime),
+        pytest.param(uvloop.new_event_loop, marks=pytest.mark.realtime),
+        VirtualClockLoop,
+    ],
+)
 def test_the_clock_cache_lets_closed_loops_go(loop_factory):
     """A loop's clock holds the loop; the cache drops the clocks of closed loops, so a program that runs loop
     after loop (a test suite, a benchmark's segments) does not keep every loop it ever ran."""

@@ -10,6 +10,8 @@ from donkeycar.vehicle import Vehicle as DonkeyVehicle
 from asyncdonkey import Vehicle
 from asyncdonkey.plan import Background
 
+pytestmark = [pytest.mark.donkeycar]
+
 
 class Script:
     def __init__(self, values):

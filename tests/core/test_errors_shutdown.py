@@ -148,6 +148,7 @@ async def test_stop_from_a_part_finishes_the_tick_then_shuts_down():
     assert t.shutdowns == 1
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_stop_from_another_thread_wakes_a_slow_loop_at_once():
     v = Vehicle()
@@ -212,6 +213,7 @@ async def test_run_refuses_bad_arguments_and_reentry():
     await task
 
 
+@pytest.mark.realtime
 def test_start_is_blocking_on_uvloop_and_returns_count_and_seconds():
     import uvloop
 

@@ -136,6 +136,7 @@ def _outcome(mem_cls, case):
     return None, dict(mem.d)
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("name", list(PARITY_CASES))
 def test_behaves_as_donkeycars_memory(name):
     from donkeycar.memory import Memory as DonkeyMemory
@@ -151,6 +152,7 @@ def test_behaves_as_donkeycars_memory(name):
         assert ours == theirs
 
 
+@pytest.mark.donkeycar
 def test_documented_differences_from_donkeycar():
     from donkeycar.memory import Memory as DonkeyMemory
 

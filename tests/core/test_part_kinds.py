@@ -137,6 +137,7 @@ class DonkeyThreaded:
         self.on = False
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_donkeycar_threaded_part_runs_in_its_own_thread_and_ends_at_shutdown():
     part = DonkeyThreaded()

@@ -46,6 +46,7 @@ async def test_a_thousand_rounds_do_not_drift():
     assert loop.time() - t0 == pytest.approx(300.0, abs=1e-9)
 
 
+@pytest.mark.realtime
 def test_one_timer_for_the_whole_loop_never_early_and_released_at_the_end():
     async def main():
         now = get_clock().now
@@ -66,6 +67,7 @@ def test_one_timer_for_the_whole_loop_never_early_and_released_at_the_end():
     assert every.schedule.k == 20 + every.schedule.skipped
 
 
+@pytest.mark.realtime
 def test_a_round_longer_than_its_period_still_lets_other_tasks_run():
     async def main():
         others = 0

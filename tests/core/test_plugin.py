@@ -57,6 +57,7 @@ async def test_factory_name_selects_the_virtual_loop():
     assert isinstance(asyncio.get_running_loop(), VirtualClockLoop)
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_tests_that_did_not_opt_in_run_on_a_normal_loop():
     assert not isinstance(asyncio.get_running_loop(), VirtualClockLoop)
@@ -128,6 +129,7 @@ def _project(pytester, *tests: str) -> None:
     pytester.makepyfile(test_other="".join((PREAMBLE, *tests)))
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("where", ["-p plugin", "trylast conftest"])
 def test_another_projects_uvloop_factory_is_used_and_ours_added_only_when_asked(pytester, where):
     """Their hook registered before ours (``-p``) or called after it (``trylast``) used to lose to ours: the
@@ -149,6 +151,7 @@ def test_another_projects_uvloop_factory_is_used_and_ours_added_only_when_asked(
     assert "SKIPPED" not in out
 
 
+@pytest.mark.realtime
 def test_without_other_hooks_plain_tests_run_on_the_default_loop(pytester):
     _project(pytester, OTHER_TESTS.replace("{other}", "asyncio"))
     result = pytester.runpytest("-s", "-v")

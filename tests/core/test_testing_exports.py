@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 import asyncdonkey.testing as testing
 
 
@@ -42,6 +44,7 @@ def test_unknown_names_raise_attribute_error():
         raise AssertionError("expected AttributeError")
 
 
+@pytest.mark.subprocess
 def test_the_virtual_clock_alone_does_not_import_opencv():
     code = "import sys, asyncdonkey.testing as t; t.VirtualClockLoop; print('cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

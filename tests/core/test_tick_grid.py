@@ -117,6 +117,7 @@ def test_on_the_virtual_clock_the_first_tick_is_at_once_and_a_poller_reads_on_it
 
 
 # --------------------------------------------------------------------------------- on a real loop
+@pytest.mark.realtime
 def test_on_a_real_loop_the_first_tick_waits_the_start_margin_and_the_poller_reads_on_its_grid():
     """Real time on a possibly busy machine: only what it can guarantee. The first tick is never before the drive's
     t0, reads are never before their grid point, and most are within a couple of milliseconds of it."""
@@ -161,6 +162,7 @@ def test_on_a_real_loop_the_first_tick_waits_the_start_margin_and_the_poller_rea
     assert statistics.median(offsets) < 2e-3
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("precise", [False, True])
 def test_on_a_real_loop_every_tick_has_the_sample_read_just_before_it(precise):
     """A 60 Hz poller beside a 20 Hz drive reads just ahead of every tick, so each tick has a sample a fraction
@@ -190,6 +192,7 @@ def test_on_a_real_loop_every_tick_has_the_sample_read_just_before_it(precise):
     assert fresh >= len(ages) / 2, sorted(ages)
 
 
+@pytest.mark.realtime
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is Linux's")
 def test_the_poller_thread_sleeps_without_timer_slack():
     """Its sleeps end on their deadlines, as the drive's timerfd does, not up to 50 µs later (the default slack,

@@ -36,6 +36,7 @@ class Await:
         await asyncio.sleep(self.seconds)
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_ten_thousand_ticks_ten_parts_under_a_second():

@@ -22,6 +22,7 @@ def run_virtual(coro_fn, **loop_kwargs):
         return runner.run(coro_fn())
 
 
+@pytest.mark.realtime
 def test_time_jumps_exactly_to_the_next_timer_and_never_backwards():
     async def main():
         loop = asyncio.get_running_loop()
@@ -104,6 +105,7 @@ def test_a_hold_that_never_ends_is_reported_as_a_stall():
         run_virtual(main, stall_timeout_s=0.2)
 
 
+@pytest.mark.realtime
 def test_deadlock_raises_a_clear_error_instead_of_hanging():
     async def main():
         await asyncio.Event().wait()
@@ -114,6 +116,7 @@ def test_deadlock_raises_a_clear_error_instead_of_hanging():
     assert time.perf_counter() - real < 2.0
 
 
+@pytest.mark.realtime
 def test_outside_io_within_grace_is_not_a_deadlock():
     async def main():
         loop = asyncio.get_running_loop()

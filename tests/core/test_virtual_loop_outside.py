@@ -75,6 +75,7 @@ def test_a_thread_started_as_another_one_ended_still_holds_time():
     assert run_virtual(main) == ("done", 1.0)
 
 
+@pytest.mark.subprocess
 def test_a_subprocess_working_longer_than_the_grace_is_not_a_deadlock():
     async def main():
         proc = await asyncio.create_subprocess_exec(*SLOW_CHILD, stdout=asyncio.subprocess.PIPE)
@@ -84,7 +85,9 @@ def test_a_subprocess_working_longer_than_the_grace_is_not_a_deadlock():
     assert run_virtual(main, deadlock_grace_s=0.05) == (b"done", 0, 0.0)
 
 
-@pytest.mark.parametrize("source", ["thread", "subprocess", "cross-thread event"])
+@pytest.mark.parametrize(
+    "source", ["thread", pytest.param("subprocess", marks=pytest.mark.subprocess), "cross-thread event"]
+)
 def test_wait_for_gets_the_answer_of_real_work_instead_of_timing_out(source):
     async def main():
         loop = asyncio.get_running_loop()
@@ -168,6 +171,7 @@ def test_a_daemon_thread_does_not_freeze_time():
         stop.set()
 
 
+@pytest.mark.realtime
 def test_an_answer_from_a_daemon_thread_within_the_threshold_arrives_before_time_moves():
     async def main():
         loop = asyncio.get_running_loop()
@@ -253,6 +257,7 @@ def test_a_stall_is_raised_once_and_names_the_stuck_call():
 # -- programs that can never finish --------------------------------------------------------------------------
 
 
+@pytest.mark.realtime
 def test_a_wait_that_never_ends_beside_a_periodic_task_exhausts_the_budget():
     async def main():
         async def heartbeat():

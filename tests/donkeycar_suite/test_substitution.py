@@ -14,6 +14,7 @@ from asyncdonkey.donkey import donkeycar_replaced
 SUITE = ("test_vehicle", "test_memory", "test_kinematics")
 
 
+@pytest.mark.donkeycar
 def test_donkeycar_names_are_asyncdonkeys_while_the_tests_run():
     assert donkeycar.Vehicle is donkeycar.vehicle.Vehicle is asyncdonkey.Vehicle
     assert donkeycar.Memory is donkeycar.memory.Memory is asyncdonkey.Memory
@@ -22,6 +23,7 @@ def test_donkeycar_names_are_asyncdonkeys_while_the_tests_run():
     assert importlib.import_module("donkeycar.tests.test_memory").Memory is asyncdonkey.Memory
 
 
+@pytest.mark.donkeycar
 def test_the_replaced_names_are_restored_on_exit():
     class OtherVehicle(asyncdonkey.Vehicle):
         pass

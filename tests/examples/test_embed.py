@@ -6,6 +6,8 @@ import json
 import pytest
 from example_loader import load_example
 
+pytestmark = [pytest.mark.realtime, pytest.mark.network]
+
 embed = load_example("embed")
 
 

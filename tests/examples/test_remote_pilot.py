@@ -84,6 +84,9 @@ def _wait(cond, timeout: float) -> bool:
     return False
 
 
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.subprocess
 def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -200,6 +203,7 @@ class _Commands:
         self.rows.append((time.monotonic(), angle, throttle, sim_throttle))
 
 
+@pytest.mark.realtime
 @pytest.mark.network
 @pytest.mark.asyncio
 async def test_bad_remote_commands_neither_stop_nor_steer_the_simulated_car():

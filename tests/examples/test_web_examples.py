@@ -33,6 +33,8 @@ def test_car_py_web_options():
     assert (args.web, args.web_port, args.web_host, args.seconds) == (True, 9000, "0.0.0.0", 0.0)
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_simulated_car_drives_from_the_web_and_stops_when_the_page_goes_quiet():
     web = {"port": 0, "host": "127.0.0.1", "announce": None, "idle_release_s": 30.0}
@@ -57,6 +59,8 @@ async def test_simulated_car_drives_from_the_web_and_stops_when_the_page_goes_qu
         await asyncio.wait_for(drive, 15)
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_pi_car_offers_web_or_gamepad(tmp_path):
     rig = Rig(tmp_path)

@@ -57,6 +57,7 @@ def test_to_rgb_swaps_channels_exactly():
     assert rgb[0, 0].tolist() == [200, 0, 10]
 
 
+@pytest.mark.realtime
 def test_slow_consumer_gets_the_newest_frame_not_a_buffered_one(video):
     r = CameraReader(video, loop=True)  # paced at the file's 100 fps
     r.start()
@@ -75,6 +76,7 @@ def test_slow_consumer_gets_the_newest_frame_not_a_buffered_one(video):
     assert r.running is False
 
 
+@pytest.mark.realtime
 def test_file_end_calls_on_end_once_and_keeps_the_last_frame(tmp_path):
     path = write_test_video(tmp_path / "short.avi", 5, fps=200)
     ended = threading.Event()
@@ -132,6 +134,7 @@ def test_make_frame_numbers_survive_jpeg_and_downscale():
         assert frame_number(rgb) == n
 
 
+@pytest.mark.realtime
 def test_read_failures_are_counted_and_a_live_source_is_reopened(tmp_path):
     import cv2
 

@@ -89,6 +89,7 @@ def test_simulated_kernel_errors_look_like_linux(sim):
 # ------------------------------------------------------------------------------------- I2CBus
 
 
+@pytest.mark.realtime
 def test_sync_and_async_transfers_return_bytes_and_count(sim, bus):
     assert bus.read_byte_data_sync(0x50, 5) == 5
     bus.write_i2c_block_data_sync(0x50, 0x80, b"\x09\x08")
@@ -102,6 +103,7 @@ def test_sync_and_async_transfers_return_bytes_and_count(sim, bus):
     assert bus.transfers == 6 and bus.retried == 0 and bus.failures == 0
 
 
+@pytest.mark.realtime
 def test_async_transfers_run_on_the_bus_worker_thread_not_the_loop(sim, bus):
     ram = sim.bus(1).devices[0x50]
     sim.bus(1).transfer_delay_s = 0.03
@@ -157,6 +159,7 @@ def test_non_transient_errors_are_not_retried(sim, bus):
     assert len(sim.bus(1).log) == 1
 
 
+@pytest.mark.realtime
 def test_retries_pause_between_attempts(sim):
     b = I2CBus(1, smbus_factory=sim.smbus, retries=2, retry_delay_s=0.01)
     sim.bus(1).nack(0x50, times=None)
@@ -167,6 +170,7 @@ def test_retries_pause_between_attempts(sim):
     b.close()
 
 
+@pytest.mark.realtime
 def test_async_error_surfaces_as_i2c_error(sim, bus):
     sim.bus(1).nack(0x50, times=None)
 
@@ -195,6 +199,7 @@ def test_closed_bus_refuses_transfers(sim, bus):
         bus.read_byte_data_sync(0x50, 0)
 
 
+@pytest.mark.realtime
 def test_a_locked_sequence_is_not_interleaved_with_other_users(sim, bus):
     """A read-modify-write on one chip holds the bus; an async transfer from the loop waits for it."""
     started = threading.Event()

@@ -174,6 +174,7 @@ async def test_a_missing_device_is_retried_until_it_appears(tmp_path):
     model.unplug()
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_reading_never_blocks_the_loop_on_a_real_loop(pad):
     reader = JoystickReader(pad.path)

@@ -136,6 +136,7 @@ def test_device_reset_puts_the_chip_back_to_sleep():
     assert model.asleep and model.registers[0x1C] == 0 and model.registers[0x6B] == 0x40
 
 
+@pytest.mark.realtime
 def test_async_read():
     _model, bus, _wire = setup(accel_g=(0, 1, 0))
     imu = MPU6050(bus)

@@ -98,6 +98,7 @@ def test_frequency_change_keeps_pulses_and_follows_the_datasheet_sequence(sim, m
     assert model.history[3] == [0, 375, 0, 375]  # halted while asleep, resumed by RESTART
 
 
+@pytest.mark.realtime
 def test_async_frequency_change(sim, model, buses):
     chip = PCA9685(buses.get(1), 0x40, 50)
     asyncio.run(chip.set_frequency(60))
@@ -183,6 +184,7 @@ def test_set_pulse_is_one_4_byte_block_write(sim, model, buses, pulse, regs):
     assert chip.read_channel_sync(5) == (0, pulse if pulse else 0x1000)
 
 
+@pytest.mark.realtime
 def test_full_on_and_full_off(sim, model, buses):
     chip = PCA9685(buses.get(1), 0x40, 60)
     chip.set_pulse_sync(7, 4096)
@@ -244,6 +246,7 @@ def test_sharing_a_chip_at_another_frequency_is_refused(buses):
         open_pwm_channel("PCA9685.1:40.2", 50, buses=buses)
 
 
+@pytest.mark.realtime
 def test_chips_at_two_addresses_are_separate(sim, model, buses):
     other = sim.attach(PCA9685Model(), address=0x41, bus=1)
     a = open_pwm_channel("PCA9685.1:40.0", 60, buses=buses)

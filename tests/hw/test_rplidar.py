@@ -191,6 +191,7 @@ def test_random_bytes_never_raise_in_any_state(chunks):
 
 
 # ------------------------------------------------------------------------------- driver vs the model
+@pytest.mark.realtime
 def test_driver_talks_the_protocol_and_publishes_complete_scans():
     async def body():
         with RPLidarPeer(points_per_scan=120, scan_hz=10.0) as peer:
@@ -215,6 +216,7 @@ def test_driver_talks_the_protocol_and_publishes_complete_scans():
     run(body())
 
 
+@pytest.mark.realtime
 def test_error_health_triggers_reset_then_scanning_once_healthy():
     async def body():
         with RPLidarPeer(points_per_scan=60, health=(2, 0x0102)) as peer:
@@ -234,6 +236,7 @@ def test_error_health_triggers_reset_then_scanning_once_healthy():
     run(body())
 
 
+@pytest.mark.realtime
 def test_watchdog_restarts_a_stalled_scan():
     async def body():
         with RPLidarPeer(points_per_scan=60, scan_hz=10.0) as peer:
@@ -250,6 +253,7 @@ def test_watchdog_restarts_a_stalled_scan():
     run(body())
 
 
+@pytest.mark.realtime
 def test_unplug_and_replug_resumes_scanning():
     async def body():
         with RPLidarPeer(points_per_scan=60, scan_hz=10.0) as peer:

@@ -113,6 +113,7 @@ def test_bad_settings_are_named():
 
 
 # ------------------------------------------------------------------------------------------ real pty io
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_lines_in_exact_bytes_out(loop_factory):
     async def body():
@@ -133,6 +134,7 @@ def test_lines_in_exact_bytes_out(loop_factory):
     run_on(loop_factory, body())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_line_buffer_is_bounded_and_drops_the_oldest(loop_factory):
     async def body():
@@ -149,6 +151,7 @@ def test_line_buffer_is_bounded_and_drops_the_oldest(loop_factory):
     run_on(loop_factory, body())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_overlong_garbage_is_dropped_and_counted(loop_factory):
     async def body():
@@ -163,6 +166,7 @@ def test_overlong_garbage_is_dropped_and_counted(loop_factory):
     run_on(loop_factory, body())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_unplug_and_replug_reconnects_to_the_same_path(loop_factory):
     async def body():
@@ -200,6 +204,7 @@ def test_unplug_and_replug_reconnects_to_the_same_path(loop_factory):
     run_on(loop_factory, body())
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_binary_mode_hands_raw_bytes_and_connection_events_to_the_receiver(loop_factory):
     class Receiver:
@@ -233,6 +238,7 @@ def test_binary_mode_hands_raw_bytes_and_connection_events_to_the_receiver(loop_
     run_on(loop_factory, body())
 
 
+@pytest.mark.realtime
 def test_skip_first_line_drops_the_fragment_a_streaming_device_leaves():
     async def body():
         with PtyPeer("stream") as peer:
@@ -286,6 +292,7 @@ def test_reconnect_backoff_follows_the_runtime_clock_exactly():
     run_on(lambda: VirtualClockLoop(), body())
 
 
+@pytest.mark.realtime
 def test_opening_runs_off_the_loop_thread():
     """The blocking open (termios set-up) happens in an executor, never on the event loop thread."""
 
@@ -309,6 +316,7 @@ def test_opening_runs_off_the_loop_thread():
     run_on(asyncio.SelectorEventLoop, body())
 
 
+@pytest.mark.realtime
 def test_pty_peer_link_is_a_stable_by_id_style_symlink():
     async def body():
         peer = PtyPeer("gadget")

@@ -23,7 +23,7 @@ from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 from .zenoh_loopback import PulseProbe, until
 
-pytestmark = pytest.mark.network
+pytestmark = [pytest.mark.realtime, pytest.mark.network]
 
 CH = "pilot/throttle"
 

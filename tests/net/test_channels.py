@@ -16,6 +16,8 @@ from asyncdonkey.parts.zenoh.parts import covering_key
 from .zenoh_loopback import RemotePilotCar, until
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_channels_arrive_under_prefix_with_their_values(link_pair):
     car, pilot = link_pair("cars/c1")
@@ -40,6 +42,8 @@ async def test_channels_arrive_under_prefix_with_their_values(link_pair):
     sub.shutdown()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_newest_value_wins_and_overwritten_values_count_as_dropped(link_pair):
     car, pilot = link_pair()
@@ -63,6 +67,8 @@ async def test_newest_value_wins_and_overwritten_values_count_as_dropped(link_pa
     sub.shutdown()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair):
     car, pilot = link_pair()
@@ -83,6 +89,8 @@ async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair
     assert sub.restarts == 1 and sub.out_of_order == 1
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link_pair, caplog):
     car, stranger = link_pair("cars/c1")
@@ -106,6 +114,7 @@ async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link
     assert await until(lambda: sub.unexpected == 22)
 
 
+@pytest.mark.network
 def test_the_rejection_message_names_the_key_and_why(link_pair, caplog):
     car, _ = link_pair("cars/c1")
     sub = ZenohSubscriber(car, ["pilot/throttle"])
@@ -114,6 +123,8 @@ def test_the_rejection_message_names_the_key_and_why(link_pair, caplog):
     assert "'cars/c1/pilot/mode': it is not one of the configured channels (1 ignored so far)" in caplog.text
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_received_age_is_sender_age_plus_transit(link_pair):
     car, pilot = link_pair()
@@ -141,6 +152,8 @@ async def test_received_age_is_sender_age_plus_transit(link_pair):
     sub.shutdown()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_on_change_sends_changes_and_a_keepalive(link_pair):
     car, pilot = link_pair()
@@ -163,6 +176,7 @@ def test_covering_key():
     assert covering_key(["cars/a/x", "cars/a/y/z"]) == "cars/a/**"
 
 
+@pytest.mark.network
 def test_bad_arguments_name_the_part(link_pair):
     car, _ = link_pair()
     with pytest.raises(ValueError, match="ZenohPublisher: channels"):
@@ -180,6 +194,8 @@ def _put(link, key, payload, **kw):
     link.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **kw)
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_quiet(link_pair):
     car = RemotePilotCar(*link_pair("cars/c1"), seconds=0.6)
@@ -222,6 +238,8 @@ class _Sender:
         pass
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_a_one_channel_subscriber_pushes_each_value_to_a_triggered_part_between_ticks(link_pair):
     car, pilot = link_pair()
@@ -262,6 +280,8 @@ class _Actuator:
             self.rows.append((time.monotonic(), angle, throttle))
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_remote_commands_reach_react_parts_when_they_arrive_not_at_the_next_tick(link_pair):
     car, pilot = link_pair()
@@ -280,6 +300,8 @@ async def test_remote_commands_reach_react_parts_when_they_arrive_not_at_the_nex
     assert act.rows[-1][1:] == pytest.approx((-0.5, 0.5))
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_a_value_with_no_sensing_behind_it_is_never_sent_as_fresh(link_pair, caplog):
     """An infinite (or unknown) age means nothing sensed is behind the value: sending it with age 0 would make a

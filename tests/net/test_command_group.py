@@ -18,7 +18,7 @@ from asyncdonkey.parts.zenoh.codec import GROUP, CodecError, decode_group, encod
 
 from .zenoh_loopback import until
 
-pytestmark = pytest.mark.network
+pytestmark = [pytest.mark.network]
 
 CMD = ("pilot/angle", "pilot/throttle")
 
@@ -75,6 +75,7 @@ class Applied:
             self.rows.append((angle, throttle, self.mem.origin("pilot/angle"), self.mem.origin("pilot/throttle")))
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_a_remote_command_is_applied_whole_with_its_own_origin(link_pair):
     car, pilot_link = link_pair("cars/c1")
@@ -98,6 +99,7 @@ async def test_a_remote_command_is_applied_whole_with_its_own_origin(link_pair):
     assert rows[-1][:2] == (-pilot.n / 100, pilot.n / 100)
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_a_group_with_one_bad_half_is_refused_whole(link_pair):
     car, peer = link_pair("cars/c1")

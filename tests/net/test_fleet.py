@@ -36,6 +36,8 @@ def _car(link: ZenohLink, mode: str) -> tuple[Vehicle, FleetStatus]:
     return v, status
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_two_cars_publish_status_and_the_view_shows_both():
     port = free_port()
@@ -86,6 +88,7 @@ def test_status_documents_are_plain_json_for_any_client():
     assert "no car status yet" in render_fleet({}, 0.0)
 
 
+@pytest.mark.network
 def test_top_once_prints_the_cars_it_heard(capsys):
     port = free_port()
     car = ZenohLink("cars/solo", listener(port))

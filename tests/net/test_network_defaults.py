@@ -26,7 +26,7 @@ from asyncdonkey.parts.zenoh.pairing import make_pair
 
 from .zenoh_loopback import free_port, listener
 
-pytestmark = pytest.mark.network
+pytestmark = [pytest.mark.network]
 
 CMD = ["pilot/angle", "pilot/throttle"]
 OPEN = "tcp/0.0.0.0:7447"

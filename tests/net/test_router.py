@@ -19,6 +19,8 @@ from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher
 
 from .zenoh_loopback import RemotePilotCar, connector, free_port, until
 
+pytestmark = [pytest.mark.realtime, pytest.mark.network]
+
 
 class Router:
     """A Zenoh router on a free loopback port, and client links to it (all closed by :meth:`close`)."""

@@ -56,6 +56,8 @@ def pair(tmp_path_factory):
     return files, other, port
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair):
     files, other, port = pair
@@ -121,6 +123,7 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
             link.close()
 
 
+@pytest.mark.network
 def test_open_sessions_are_named_and_a_subscriber_on_one_warns(pair, caplog):
     files, _, port = pair
     assert exposure(zenoh_config(files.car_config)) == []
@@ -153,6 +156,7 @@ def test_open_sessions_are_named_and_a_subscriber_on_one_warns(pair, caplog):
         link.close()
 
 
+@pytest.mark.network  # (the pair fixture takes a free port)
 def test_pair_writes_private_keys_owner_only_and_a_deny_by_default_car(pair):
     files, _, port = pair
     car = _json5(files.car_config)

@@ -105,6 +105,7 @@ def test_non_numeric_input_names_the_part(rig):
         rig.steering().run("left")
 
 
+@pytest.mark.donkeycar
 @settings(max_examples=300, deadline=None)
 @given(st.floats(min_value=-1, max_value=1), st.sampled_from([(460, 290), (290, 460), (400, 340), (500, 200)]))
 def test_mapping_is_bit_for_bit_donkeycars(x, cal):
@@ -118,6 +119,7 @@ def test_mapping_is_bit_for_bit_donkeycars(x, cal):
     assert ours.map_throttle(x) == dk_throttle.pulse
 
 
+@pytest.mark.donkeycar
 def test_pulse_to_ticks_matches_donkeycars_pulse_controller_on_the_chip(rig):
     """Donkeycar's PulseController + PCA9685 pin code drive channel 2 of the model, ours drives channel 3."""
     from asyncdonkey.hw.pca9685 import get_pca9685
@@ -320,6 +322,7 @@ async def test_i2c_errors_mid_drive_are_counted_logged_and_survived(rig, caplog)
 # ------------------------------------------------------------------------------- never blocking
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_slow_i2c_never_shows_in_the_tick():
     """Each transfer takes 20 ms of real time; the parts' run() still costs well under a millisecond."""
@@ -340,6 +343,7 @@ async def test_slow_i2c_never_shows_in_the_tick():
 # ------------------------------------------------------------------------------ construction paths
 
 
+@pytest.mark.realtime
 def test_parts_accept_a_prebuilt_channel(rig):
     from asyncdonkey.hw.pca9685 import open_pwm_channel
 
@@ -349,6 +353,7 @@ def test_parts_accept_a_prebuilt_channel(rig):
     assert rig.pca.pulse(5) == 375
 
 
+@pytest.mark.realtime
 def test_parts_accept_a_donkeycar_blocking_controller_called_off_the_loop(rig):
     from asyncdonkey.hw.pca9685 import get_pca9685
 
@@ -376,6 +381,7 @@ def test_parts_accept_a_donkeycar_blocking_controller_called_off_the_loop(rig):
         PWMSteering(DonkeycarStyleController(), pwm_scale=1.2)
 
 
+@pytest.mark.realtime
 def test_from_donkeycar_config(rig):
     cfg = types.SimpleNamespace(
         PWM_STEERING_THROTTLE={
@@ -418,6 +424,7 @@ def test_bad_construction_is_explained(rig, make, error, match):
         make(rig)
 
 
+@pytest.mark.realtime
 def test_clock_is_taken_lazily_from_the_running_loop(rig):
     async def main():
         t = rig.throttle()

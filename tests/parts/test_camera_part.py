@@ -45,6 +45,7 @@ def test_missing_device_and_file_give_clear_errors(tmp_path):
         CvCamera(image_d=1, iCam=str(tmp_path / "missing.avi"))
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 @pytest.mark.parametrize("threaded", [False, True])
 async def test_vehicle_on_the_real_loop_never_sees_none_and_frames_move_on(video, threaded):
@@ -72,6 +73,7 @@ def lambda_part(fn):
     return P()
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_on_the_virtual_clock_frames_are_stamped_with_virtual_time(video):
@@ -94,6 +96,7 @@ class RealWork:
         time.sleep(self.seconds)
 
 
+@pytest.mark.realtime
 def test_non_looping_file_ends_once_and_keeps_serving_the_last_frame(tmp_path):
     path = write_test_video(tmp_path / "short.avi", 4, fps=400)
     ended = []

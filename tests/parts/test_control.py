@@ -52,6 +52,7 @@ def test_unknown_mode_fails_loudly_instead_of_handing_over_to_the_pilot():
         DriveMode(ai_throttle_mult=-1)
 
 
+@pytest.mark.donkeycar
 def test_modes_cycle_in_donkeycar_order_and_aliases_normalise():
     assert DRIVE_MODES == ("user", "local_angle", "local")
     assert normalise_mode("local_pilot") == "local"
@@ -73,6 +74,7 @@ def _donkeycar_template_class(template: str, name: str) -> type:
     return namespace[name]
 
 
+@pytest.mark.donkeycar
 def test_same_results_as_donkeycars_drive_mode_on_its_modes():
     theirs = _donkeycar_template_class("complete.py", "DriveMode")(ai_throttle_mult=0.8)
     ours = DriveMode(ai_throttle_mult=0.8)

@@ -25,7 +25,7 @@ from asyncdonkey.parts.mcap.reader import decode_image, protobuf_class
 
 PROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
-pytestmark = pytest.mark.network
+pytestmark = [pytest.mark.network]
 
 
 class Car:
@@ -60,6 +60,7 @@ async def message_data(ws, sub_id: int, timeout: float = 5.0) -> tuple[int, byte
                     return log_ns, raw[13:]
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_a_client_subscribes_and_receives_live_messages():
     v = Vehicle()
@@ -116,6 +117,7 @@ def _schema_bytes(channel: dict) -> bytes:
     return base64.b64decode(channel["schema"])
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_nobody_watching_costs_no_encoding():
     v = Vehicle()
@@ -142,6 +144,7 @@ def test_a_busy_port_is_an_error_naming_the_address():
         first.shutdown()
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 @pytest.mark.parametrize(
     "offer, chosen",
@@ -172,6 +175,7 @@ async def test_clients_offering_either_subprotocol_name_are_served(offer, chosen
         await drive
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_a_client_offering_neither_name_is_refused_by_the_server():
     live = FoxgloveServer(Vehicle(), port=0)
@@ -274,6 +278,7 @@ def test_the_relay_renames_the_offer_and_the_answer_and_nothing_else():
         server.close()
 
 
+@pytest.mark.realtime
 def test_a_slow_client_gets_backpressure_not_an_unbounded_buffer():
     from asyncdonkey.parts.mcap.relay import SubprotocolRelay
 
@@ -306,6 +311,7 @@ def test_a_slow_client_gets_backpressure_not_an_unbounded_buffer():
         server.close()
 
 
+@pytest.mark.realtime
 def test_a_silent_client_is_dropped_after_the_handshake_timeout():
 
     from asyncdonkey.parts.mcap.relay import SubprotocolRelay

@@ -210,6 +210,7 @@ async def test_unplug_and_replug_keeps_the_origin():
         assert y > 2.0
 
 
+@pytest.mark.realtime
 def test_real_loop_smoke():
     """The same part on the real asyncio loop: a fix within a few hundred ms."""
 

@@ -243,6 +243,7 @@ async def test_unplug_and_replug_mid_drive_keeps_distance_continuous():
     assert bytes(peer.received) == b"r\nc20\nr\nc20\nc\n"
 
 
+@pytest.mark.realtime
 def test_watchdog_restarts_the_stream_after_a_board_ignored_it_while_booting():
     """Real time (the point is when commands arrive relative to the board's boot, which on a virtual clock
     depends on the kernel's pty worker): r and c16 at connect are lost in the bootloader, the watchdog asks
@@ -281,6 +282,8 @@ def test_run_ignores_none_and_nan_throttle():
 
 
 # ------------------------------------------------------------------------------ Donkeycar's client
+@pytest.mark.realtime
+@pytest.mark.donkeycar
 def test_donkeycars_serial_encoder_reads_the_model():
     """Donkeycar's own SerialEncoder + Tachometer (blocking pyserial, in a thread) against the peer: the
     model answers ``r`` / ``p`` the way the sketch does, so Donkeycar counts the same ticks."""

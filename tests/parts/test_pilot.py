@@ -374,6 +374,7 @@ async def test_other_tasks_run_while_inference_is_in_the_executor(tmp_path):
     assert pilot.inferences == 5 and v.mem["pilot/angle"] is not None
 
 
+@pytest.mark.realtime
 def test_offload_false_computes_on_the_loop_thread(tmp_path):
     pilot = OnnxPilot(pixel_probe(tmp_path / "p.onnx", [1, 120, 160, 3]), offload=False)
     seen = []
@@ -387,6 +388,7 @@ def test_offload_false_computes_on_the_loop_thread(tmp_path):
     assert seen == [threading.main_thread()]
 
 
+@pytest.mark.realtime
 def test_profiler_shows_the_pilot_time_on_a_real_loop(tmp_path):
     """On real time the profiler row for the pilot holds the inference (at least the compute it measured)."""
     pilot = OnnxPilot(export_donkey_linear_shaped(tmp_path / "d.onnx"))

@@ -37,6 +37,8 @@ from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.reader import read_mcap
 from asyncdonkey.parts.tub import Tub, TubFileIO, TubWriter
 
+pytestmark = [pytest.mark.realtime]
+
 with contextlib.redirect_stdout(io.StringIO()):  # Donkeycar prints a banner on import
     from donkeycar.parts.tub_v2 import Tub as DkTub
 
@@ -141,7 +143,7 @@ def _can_mount() -> bool:
     return sys.platform.startswith("linux") and os.geteuid() == 0 and shutil.which("mount") is not None
 
 
-@pytest.fixture(params=["tmpfs", "injected"])
+@pytest.fixture(params=[pytest.param("tmpfs", marks=pytest.mark.subprocess), "injected"])  # (mount and umount)
 def disk(request, tmp_path):
     root = tmp_path / "disk"
     root.mkdir()
@@ -246,6 +248,7 @@ def dk_iterated(path: Path) -> list[dict]:
         tub.close()
 
 
+@pytest.mark.donkeycar
 def test_tub_num_records_counts_only_records_on_disk_and_recording_resumes(disk, caplog):
     caplog.set_level(logging.WARNING)
     root = disk.root / "tub"

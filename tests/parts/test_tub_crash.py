@@ -35,6 +35,8 @@ import pytest
 from asyncdonkey.parts.tub import Tub, TubFileIO, TubNotFoundError, TubWriter, repair_tub
 from asyncdonkey.parts.tub.appender import TubAppender
 
+pytestmark = [pytest.mark.donkeycar]
+
 with contextlib.redirect_stdout(io.StringIO()):
     from donkeycar.parts.tub_v2 import Tub as DkTub
 
@@ -200,6 +202,7 @@ def run_forked(root: Path, kill_at: int, torn: bool) -> tuple[int, int, int]:
     return outcome, durable, deleted
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork (POSIX)")
 def test_killed_at_every_file_operation(tmp_path):
     clean = CrashingDisk(-1, torn=False)
@@ -247,6 +250,8 @@ CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.realtime
+@pytest.mark.subprocess
 @pytest.mark.parametrize("kill_after", [45, 83, 130])
 def test_sigkill_mid_recording(tmp_path, kill_after):
     root = tmp_path / "tub"

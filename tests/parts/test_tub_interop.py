@@ -15,6 +15,8 @@ from PIL import Image
 
 from asyncdonkey.parts.tub import Tub, TubWiper, TubWriter
 
+pytestmark = [pytest.mark.donkeycar]
+
 with contextlib.redirect_stdout(io.StringIO()):  # Donkeycar prints a banner on import
     from donkeycar.parts.tub_v2 import Tub as DkTub
     from donkeycar.parts.tub_v2 import TubWriter as DkTubWriter

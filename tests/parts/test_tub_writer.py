@@ -234,6 +234,7 @@ def test_sync_point_flushes_data_before_the_manifests_name_it(tmp_path, has_sync
     assert ("syncdir", "t") in ops[first_rename:]
 
 
+@pytest.mark.realtime
 def test_records_become_durable_within_the_sync_interval(tmp_path):
     w = TubWriter(tmp_path / "t", ["user/angle"], ["float"], sync_every=1000, sync_interval_s=0.05)
     w.run(0.5)
@@ -293,6 +294,7 @@ class SlowDisk(TubFileIO):
         super().write_file(path, data)
 
 
+@pytest.mark.realtime
 def test_a_200ms_disk_stall_is_never_seen_in_run(tmp_path):
     w = TubWriter(tmp_path / "t", BASIC_INPUTS, BASIC_TYPES, file_io=SlowDisk(), queue_size=50, fsync=False)
     frames = [scene(k) for k in range(4)]
@@ -315,6 +317,7 @@ def test_a_200ms_disk_stall_is_never_seen_in_run(tmp_path):
     assert s.accepted - 1 <= s.written + s.failed + s.abandoned <= s.accepted  # one may be mid-write
 
 
+@pytest.mark.realtime
 def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
     disk = GatedDisk()
     w = TubWriter(tmp_path / "t", BASIC_INPUTS, BASIC_TYPES, file_io=disk, queue_size=5)
@@ -337,6 +340,7 @@ def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
     assert [r["user/angle"] for r in recs] == [i / 100 for i in range(s.accepted)]  # oldest kept, newest dropped
 
 
+@pytest.mark.realtime
 def test_shutdown_gives_up_after_its_timeout_and_counts_what_was_abandoned(tmp_path, caplog):
     disk = GatedDisk()
     w = TubWriter(tmp_path / "t", BASIC_INPUTS, BASIC_TYPES, file_io=disk, queue_size=10)

@@ -81,6 +81,7 @@ def _switched_off_pilot_car(rig: Rig, drive_mode) -> tuple[Vehicle, object, Reco
     return v, throttle, ages
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("drive_mode", [None, "ours", "donkeycar"])
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock

@@ -241,6 +241,7 @@ async def test_cancelling_during_an_async_shutdown_propagates():
 # --------------------------------------------------------------------------------- two-phase shutdown
 
 
+@pytest.mark.realtime
 def test_actuators_reach_neutral_before_a_hanging_shutdown_is_waited_for(caplog):
     caplog.set_level(logging.ERROR)
     rig = Rig()

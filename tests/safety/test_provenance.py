@@ -239,6 +239,7 @@ def _changes(rig: Rig, t0: float = 0.0):
     return [(round(t - t0, 6), p) for t, p in rig.pca.timeline]
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("kind", ["ours", "donkeycar"])
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
@@ -254,6 +255,7 @@ async def test_case_1_user_mode_with_the_pilot_never_run_drives(kind):
     assert rig.pca.pulse_at(38 * PERIOD) == HALF
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("kind", ["ours", "donkeycar"])
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
@@ -271,6 +273,7 @@ async def test_case_2_back_to_user_with_a_stale_pilot_drives_from_the_first_user
     assert rig.pca.first_time(HALF, 0.46) == pytest.approx(20 * PERIOD)
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("how", ["none", "raise"])
 @pytest.mark.parametrize("kind", ["ours", "donkeycar"])
 @pytest.mark.asyncio
@@ -293,6 +296,7 @@ async def test_case_3_a_silent_pilot_in_local_mode_stops_within_the_window(kind,
     assert ages.seen[-1][1] == pytest.approx(20 * PERIOD)
 
 
+@pytest.mark.donkeycar
 @pytest.mark.parametrize("kind", ["ours", "donkeycar"])
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock

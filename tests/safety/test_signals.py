@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.realtime]
+
 CAR = textwrap.dedent(
     '''
     import asyncio, time
@@ -132,6 +134,7 @@ def car(tmp_path):
         c.kill()
 
 
+@pytest.mark.subprocess
 def test_sigint_ends_a_drive_whose_async_part_never_returns(car):
     c = car("async")
     hang_at = float(c.wait_for("HANG").split()[1])
@@ -149,6 +152,7 @@ def test_sigint_ends_a_drive_whose_async_part_never_returns(car):
     assert pulses[-1][1] == 370
 
 
+@pytest.mark.subprocess
 def test_sigint_interrupts_a_sync_part_that_holds_the_loop(car):
     c = car("sync")
     hang_at = float(c.wait_for("HANG").split()[1])
@@ -163,6 +167,7 @@ def test_sigint_interrupts_a_sync_part_that_holds_the_loop(car):
     assert next(t for t, p in pulses if p == 370 and t > hang_at) - hang_at <= 0.25 + 0.15
 
 
+@pytest.mark.subprocess
 def test_a_second_sigint_exits_at_once_with_status_130_and_the_throttle_stopped(car):
     c = car("sync")
     c.wait_for("HANG")
@@ -176,6 +181,7 @@ def test_a_second_sigint_exits_at_once_with_status_130_and_the_throttle_stopped(
     assert c.pulses()[-1][1] == 370
 
 
+@pytest.mark.subprocess
 def test_sigterm_stops_like_sigint(car):
     c = car("async")
     c.wait_for("HANG")
@@ -186,6 +192,7 @@ def test_sigterm_stops_like_sigint(car):
     assert "stopped by: SIGTERM" in err
 
 
+@pytest.mark.subprocess
 def test_a_hung_shutdown_does_not_keep_the_process_alive(car):
     c = car("stuck-shutdown", "--max-loops", "5")
     status, took, err = c.finish(timeout=20)

@@ -14,6 +14,8 @@ from asyncdonkey.loop import run_blocking
 
 from .rig import HALF, NEUTRAL, Const, Rig
 
+pytestmark = [pytest.mark.realtime]
+
 WINDOW = 0.25
 SLACK = 0.15
 

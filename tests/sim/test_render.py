@@ -123,6 +123,7 @@ def test_camera_spec_checks_its_numbers():
         CameraSpec(mount_height=0)
 
 
+@pytest.mark.realtime
 def test_render_is_fast(sim):
     sim.reset(s=1.0)
     times = []

@@ -15,6 +15,8 @@ from asyncdonkey.parts.web.video import CONTENT_TYPE
 
 from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
 
+pytestmark = [pytest.mark.realtime, pytest.mark.network]
+
 
 async def next_json(ws: aiohttp.ClientWebSocketResponse, key: str, timeout: float = 5.0) -> dict:
     """The next message from the server that has ``key``."""

@@ -15,6 +15,8 @@ import pytest
 
 from .web_rig import ZERO_PULSE, CarThread, WebCar, wait_until
 
+pytestmark = [pytest.mark.realtime, pytest.mark.browser, pytest.mark.network, pytest.mark.subprocess]
+
 
 @pytest.fixture(scope="module")
 def car(tmp_path_factory: pytest.TempPathFactory) -> Iterator[WebCar]:
@@ -296,7 +298,6 @@ def test_calibration_page_sets_the_steering_end_point(tab: Page, car: WebCar):
     assert tab.errors == []
 
 
-@pytest.mark.browser
 def test_the_calibration_page_is_refused_while_another_page_drives(browser: Any, tab: Page, car: WebCar):
     tab.page.keyboard.down("ArrowUp")
     wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the first tab driving")

@@ -177,6 +177,9 @@ async def request(port: int, path: str, token: str | None, *, conn: Any = None) 
 
 
 # ===================================================================================== the flood
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.subprocess
 @pytest.mark.asyncio
 async def test_slow_connections_beyond_the_descriptor_limit_lock_out_neither_the_driver_nor_the_recording(
     tmp_path, low_nofile
@@ -225,6 +228,8 @@ async def flooded(
 
 
 # ===================================================================================== the header timeout
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_a_connection_must_present_the_token_within_the_header_timeout(tmp_path):
     async with driving(WebCar(tmp_path, header_timeout_s=0.5)) as car:
@@ -249,6 +254,8 @@ async def test_a_connection_must_present_the_token_within_the_header_timeout(tmp
             writer.close()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_over_https_the_deadline_covers_the_handshake(tmp_path):
     server_ctx, client_ctx = self_signed(tmp_path)
@@ -265,6 +272,8 @@ async def test_over_https_the_deadline_covers_the_handshake(tmp_path):
             writer.close()
 
 
+@pytest.mark.realtime
+@pytest.mark.network
 def test_on_uvloop_as_the_car_runs_the_deadline_covers_the_handshake_and_clients_are_served(tmp_path):
     """``asyncdonkey run`` drives on uvloop, whose transports start reading in their own way: the same checks."""
     import uvloop
@@ -288,6 +297,8 @@ def test_on_uvloop_as_the_car_runs_the_deadline_covers_the_handshake_and_clients
 
 
 # ===================================================================================== the cap
+@pytest.mark.realtime
+@pytest.mark.network
 @pytest.mark.asyncio
 async def test_at_the_cap_connections_without_the_token_go_first_never_the_drivers(tmp_path):
     """Shedding makes room for newcomers; when only connections with the token are left, the guard waits."""
@@ -367,6 +378,7 @@ async def guarded(guard: ConnectionGuard) -> AsyncIterator[Callable[[], Any]]:
             peer.close()
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_the_guard_sheds_the_oldest_without_the_token_and_refuses_when_only_admitted_ones_are_left():
     guard = ConnectionGuard(60.0, max_connections=3, reserve_fds=0, budget=FdBudget(lambda: None, lambda: None))
@@ -390,6 +402,7 @@ async def test_the_guard_sheds_the_oldest_without_the_token_and_refuses_when_onl
         }
 
 
+@pytest.mark.realtime
 @pytest.mark.asyncio
 async def test_the_guard_keeps_the_descriptor_reserve():
     fds = {"base": 5}

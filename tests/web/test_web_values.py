@@ -18,7 +18,7 @@ import pytest
 
 from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving
 
-pytestmark = [pytest.mark.network]
+pytestmark = [pytest.mark.realtime, pytest.mark.network]
 
 FAILSAFE_S = 0.25  # PWMThrottle's default failsafe_age_s
 SLACK_S = 0.15  # what docs/safety.md lets a loaded 2-core machine add to a bound

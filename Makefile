@@ -1,11 +1,11 @@
 # The two commands of the quick start: `make run` (the simulated car) and `make test`.
-# Both create .venv on first use and install what they need into it.
+# Both create .venv on first use and install what they need into it. See docs/testing.md for the other test targets.
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip -q --disable-pip-version-check
 
-.PHONY: run test lint format bench clean
+.PHONY: run test test-fast test-loaded lint format bench clean
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,11 +24,48 @@ $(VENV)/.test: $(VENV)/.base
 	$(PIP) install --no-deps $(DONKEYCAR)
 	touch $@
 
+# The web controller's browser tests drive Debian's chromium through Playwright: Playwright's own browser download
+# cannot work on the car's machines (no internet beyond package registries). Installed here, once, before the tests
+# (nothing to do when it is there); apt-get needs root, so elsewhere this stops with the command to run.
+CHROMIUM ?= $(or $(ASYNCDONKEY_CHROMIUM),/usr/bin/chromium)
+
+$(CHROMIUM):
+	@if [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null; then \
+		echo "the browser tests need Chromium at $@: run 'sudo apt-get install -y chromium' (or set" \
+			"ASYNCDONKEY_CHROMIUM to a Chromium binary), or leave them out: make test-fast" >&2; \
+		exit 1; \
+	fi
+	DEBIAN_FRONTEND=noninteractive apt-get update -q
+	DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium
+	@test -x $@ || { echo "apt-get installed chromium, but not at $@" >&2; exit 1; }
+
+# What is deterministic and fast: the tests on the virtual clock and the plain unit tests, none of the kinds that
+# need real time, a browser, Donkeycar, sockets or processes (the markers, docs/testing.md).
+FAST := not realtime and not browser and not donkeycar and not network and not subprocess
+
 run: $(VENV)/.base
 	$(VENV)/bin/asyncdonkey run examples/car.py $(ARGS)
 
-test: $(VENV)/.test
+test: $(VENV)/.test $(CHROMIUM)
 	$(VENV)/bin/ruff check .
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-fast: $(VENV)/.test
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -m "$(FAST)" $(PYTEST_ARGS)
+
+# The whole suite beside one busy process per core: a loaded machine, as a shared CI runner is. Each busy process
+# spins until the shell that started it is gone, so none outlives the run, however it ends; the shell also kills
+# them as soon as pytest returns (or is interrupted), and exits with pytest's status.
+BUSY := import os, itertools; parent = os.getppid(); any(os.getppid() != parent for _ in itertools.count())
+
+test-loaded: $(VENV)/.test $(CHROMIUM)
+	$(VENV)/bin/ruff check .
+	@busy=""; \
+	for _ in $$(seq "$$(nproc)"); do $(PY) -c '$(BUSY)' >/dev/null 2>&1 & busy="$$busy $$!"; done; \
+	trap 'kill $$busy 2>/dev/null' EXIT; \
+	trap 'exit 130' INT TERM; \
+	echo "test-loaded: $$(nproc) busy processes ($$busy ) beside the suite"; \
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 lint: $(VENV)/.test

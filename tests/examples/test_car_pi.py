@@ -3,12 +3,13 @@
 from pathlib import Path
 
 import pytest
-from example_loader import load_example
 
 from asyncdonkey.parts.tub import Tub
 from asyncdonkey.testing.camera_models import write_test_video
 from asyncdonkey.testing.i2c_models import I2CSimulator, MPU6050Model, PCA9685Model
 from asyncdonkey.testing.joystick_model import JoystickModel
+
+from .example_loader import load_example
 
 
 class Rig:

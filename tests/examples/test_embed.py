@@ -4,7 +4,8 @@ import asyncio
 import json
 
 import pytest
-from example_loader import load_example
+
+from .example_loader import load_example
 
 pytestmark = [pytest.mark.realtime, pytest.mark.network]
 

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from example_loader import load_example
 
 from asyncdonkey import Vehicle
 from asyncdonkey.cli import main as cli_main
@@ -27,6 +26,8 @@ from asyncdonkey.parts.tub import Tub
 from asyncdonkey.replay import replay
 from asyncdonkey.report import load_timing, render_html
 from asyncdonkey.testing import VirtualClockLoop
+
+from .example_loader import load_example
 
 with contextlib.redirect_stdout(io.StringIO()):
     from donkeycar.parts.tub_v2 import Tub as DkTub

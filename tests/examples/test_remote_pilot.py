@@ -20,9 +20,10 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from example_loader import load_example
 
 from asyncdonkey.parts.zenoh import zenoh_config
+
+from .example_loader import load_example
 
 ROOT = Path(__file__).resolve().parents[2]
 FAILSAFE_S = 0.25

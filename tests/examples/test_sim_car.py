@@ -4,9 +4,10 @@ import io
 from pathlib import Path
 
 import pytest
-from example_loader import load_example
 
 from asyncdonkey.parts.tub import Tub
+
+from .example_loader import load_example
 
 car_py = load_example("car")
 

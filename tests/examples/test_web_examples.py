@@ -5,10 +5,11 @@ import asyncio
 
 import aiohttp
 import pytest
-from example_loader import load_example
-from test_car_pi import Rig
 
 from asyncdonkey.parts.web import WebController
+
+from .example_loader import load_example
+from .test_car_pi import Rig
 
 car_py = load_example("car")
 car_pi = load_example("car_pi")

@@ -16,7 +16,7 @@ BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 ROUNDS, TRIPS = 2, 10
 NAMES = {"frame raw", "frame JPEG", "scalar"}
 
-pytestmark = [pytest.mark.network, pytest.mark.subprocess]
+pytestmark = [pytest.mark.realtime, pytest.mark.network, pytest.mark.subprocess]  # real trips, timed
 
 
 def _run_all():

@@ -265,6 +265,7 @@ CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.realtime  # the kill lands after a real-time wait for the child's progress
 @pytest.mark.subprocess
 @pytest.mark.parametrize("kill_after", [30, 77])
 def test_kill_9_mid_recording_leaves_a_readable_file(tmp_path, kill_after):

@@ -86,7 +86,11 @@ async def test_a_remote_command_is_applied_whole_with_its_own_origin(link_pair):
     sub = ZenohSubscriber(car, list(CMD), group=PILOT_COMMAND, ping_every_s=0)
     v.add(sub, outputs=list(CMD))
     v.add(applied, inputs=list(CMD), react=True)
-    await v.run(rate_hz=5, max_loop_count=5)  # ticks 200 ms apart: the commands arrive between them
+    # ticks 200 ms apart: the commands arrive between them. The pilot's 60 commands take 0.72 s from 0.3 s on a quiet
+    # machine and its 7 ms sleeps stretch on a loaded one: the drive lasts 1.8 s, so the last one is sent and
+    # received before it ends (at 0.8 s it was, on a machine with both cores busy, one command short)
+    await v.run(rate_hz=5, max_loop_count=10)
+    assert len(pilot.sent) == pilot.n, f"the pilot sent {len(pilot.sent)} of its {pilot.n} commands in the drive"
     assert sub.key_expr == "cars/c1/pilot/command" and sub.counters()["refused"] == 0
     rows = [r for r in applied.rows if r[1] > 0]
     assert len(rows) >= pilot.n // 3, len(rows)  # a busy loop may merge pushes; most commands are seen

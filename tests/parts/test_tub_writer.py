@@ -327,7 +327,8 @@ def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
         counts.append(w.run(scene(i % 3), i / 100, 0.0, "user"))
         assert time.perf_counter() - t0 < 0.5  # waiting for the gated disk would never return
     s = w.stats
-    # the first record is being written (blocked), five wait, the rest were refused
+    # five wait in the queue, the rest were refused; a sixth got in if the writer thread took the first off the
+    # queue (to block on the gated disk) while the records were offered, on a loaded machine as late as the last
     assert s.accepted in (5, 6) and s.dropped == 20 - s.accepted
     assert s.queue_high_water == 5
     assert counts[-1] == 0  # run() reports the records written: none yet, the disk is gated
@@ -337,7 +338,10 @@ def test_a_full_queue_drops_the_newest_and_counts_them(tmp_path):
     assert s.written == s.accepted and s.abandoned == 0
     recs = list(Tub(tmp_path / "t"))
     assert [r["_index"] for r in recs] == list(range(s.accepted))  # no gaps: the drops never got an index
-    assert [r["user/angle"] for r in recs] == [i / 100 for i in range(s.accepted)]  # oldest kept, newest dropped
+    angles = [r["user/angle"] for r in recs]
+    assert angles[:5] == [i / 100 for i in range(5)]  # oldest kept, newest dropped
+    # the sixth, if any: the record offered when the thread freed a place, the sixth or (loaded machine) a later one
+    assert len(angles) == s.accepted and all(0.05 <= a < 0.2 for a in angles[5:])
 
 
 @pytest.mark.realtime

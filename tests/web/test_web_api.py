@@ -193,7 +193,9 @@ async def test_mode_recording_and_record_count_round_trip(tmp_path):
             assert "autopilot" in (await next_json(ws, "error"))["error"]
             await ws.send_json({"recording": True})
             assert (await next_json(ws, "recording"))["recording"] is True
-            assert (await next_json(ws, "num_records", 10))["num_records"] == 10  # the tub's count, every 10
+            # pushed when the tub's count passes a multiple of ten, as it is then: 10, or more when the writer
+            # thread wrote several records between two ticks (a loaded machine)
+            assert 10 <= (await next_json(ws, "num_records", 10))["num_records"] < 20
             await ws.send_json({"recording": False})
             assert (await next_json(ws, "recording"))["recording"] is False
         assert car.mem["user/mode"] == "local_angle"

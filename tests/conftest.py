@@ -81,6 +81,13 @@ def _audit(event: str, args: tuple[Any, ...]) -> None:
 
 sys.addaudithook(_audit)  # (an audit hook cannot be removed: it does nothing outside a test)
 
+# ctypes finds the C library by running ldconfig once, the first time asyncdonkey asks for it in each errno mode:
+# a cache filled by whichever test comes first, not a process that test starts. Filled here, before any test.
+from asyncdonkey import _libc  # noqa: E402
+
+_libc._library(True)
+_libc._library(False)
+
 
 def _watching_running_loop(set_running_loop: Callable[[Any], None]) -> Callable[[Any], None]:
     def _set_running_loop(loop: Any) -> None:

@@ -1,6 +1,6 @@
 """The watchdog stops the car when the loop thread cannot: on the real loop, against the PCA9685 register model.
 
-These are real-time tests: they assert bounds a loaded 2-core machine keeps (the failsafe window plus 150 ms),
+These are real-time tests: they assert bounds a loaded 2-core machine keeps (the failsafe window plus 500 ms),
 not the figures, which ``benchmarks/safety.py`` measures.
 """
 
@@ -17,7 +17,11 @@ from .rig import HALF, NEUTRAL, Const, Rig
 pytestmark = [pytest.mark.realtime]
 
 WINDOW = 0.25
-SLACK = 0.15
+# What a loaded 2-core machine adds to the failsafe window before the chip shows neutral: the watchdog's thread and
+# the bus's must be scheduled. 150 ms was not enough beside a busy process per core and a second test suite (the
+# pin went neutral 282 ms late). The tests still tell a watchdog that works from one that does not: without it
+# the pin would stay at the command until the block ends, 1 s or more after it began (asserted apart).
+SLACK = 0.5
 
 
 class Blocker:

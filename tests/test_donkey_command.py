@@ -26,8 +26,8 @@ from donkeycar.parts.tub_v2 import Tub as DkTub
 from tornado.websocket import websocket_connect
 
 import asyncdonkey
-from asyncdonkey.cli import main
-from asyncdonkey.donkey import DonkeycarVehicle, DriveOptions, run_manage_py
+from asyncdonkey.commands.cli import main
+from asyncdonkey.commands.donkey import DonkeycarVehicle, DriveOptions, run_manage_py
 
 pytestmark = [pytest.mark.donkeycar]
 

@@ -7,12 +7,12 @@ import numpy as np
 import onnx
 import pytest
 
-from asyncdonkey.cli import main
+from asyncdonkey.commands.cli import main
+from asyncdonkey.commands.quantize import QuantizeError, quantize_pilot, tub_frames
 from asyncdonkey.parts.pilot import OnnxPilot
 from asyncdonkey.parts.sim import ScriptedDriver, Simulator
 from asyncdonkey.parts.tub import TubNotFoundError, TubWriter
 from asyncdonkey.pilot_export import SMALL_CONVS, SMALL_DENSE, export_donkey_linear_shaped
-from asyncdonkey.quantize import QuantizeError, quantize_pilot, tub_frames
 
 
 def drive_frames(n: int, seed: int) -> list[np.ndarray]:

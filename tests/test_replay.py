@@ -25,11 +25,11 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.commands.replay import CSV_COLUMNS, ReplayError, replay
 from asyncdonkey.parts.tub import Tub, TubNotFoundError, TubWriter
-from asyncdonkey.replay import CSV_COLUMNS, ReplayError, replay
 from asyncdonkey.testing import VirtualClockLoop
 
-CLI = [sys.executable, "-m", "asyncdonkey.cli"]
+CLI = [sys.executable, "-m", "asyncdonkey.commands"]
 INPUTS = ["cam/image_array", "user/angle", "user/throttle"]
 TYPES = ["image_array", "float", "float"]
 #: the model sums 19,200 pixels in float32; numpy checks in float64 (differences seen: about 1e-5)

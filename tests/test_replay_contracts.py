@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 
 from asyncdonkey import Contract, Contracts, Vehicle
-from asyncdonkey.cli import main as cli_main
-from asyncdonkey.convert import convert
+from asyncdonkey.commands.cli import main as cli_main
+from asyncdonkey.commands.convert import convert
+from asyncdonkey.commands.replay import replay
 from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.reader import McapTub, read_mcap
 from asyncdonkey.parts.tub import Tub
-from asyncdonkey.replay import replay
 from asyncdonkey.testing import VirtualClockLoop
 
 from .test_replay import INPUTS, record_tub

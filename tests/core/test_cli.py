@@ -11,9 +11,10 @@ from pathlib import Path
 import pytest
 
 import asyncdonkey
-from asyncdonkey import cli, options
+from asyncdonkey import options
+from asyncdonkey.commands import cli
 
-CLI = [sys.executable, "-m", "asyncdonkey.cli"]
+CLI = [sys.executable, "-m", "asyncdonkey.commands"]
 
 
 def run_cli(*args, timeout=30):

@@ -13,7 +13,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from asyncdonkey.donkey import donkeycar_replaced
+from asyncdonkey.commands.donkey import donkeycar_replaced
 
 
 @pytest.fixture(autouse=True)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from asyncdonkey.donkey import donkeycar_replaced
+from asyncdonkey.commands.donkey import donkeycar_replaced
 
 pytestmark = [pytest.mark.donkeycar]
 

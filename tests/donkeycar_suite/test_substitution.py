@@ -9,7 +9,7 @@ import donkeycar.vehicle
 import pytest
 
 import asyncdonkey
-from asyncdonkey.donkey import donkeycar_replaced
+from asyncdonkey.commands.donkey import donkeycar_replaced
 
 SUITE = ("test_vehicle", "test_memory", "test_kinematics")
 

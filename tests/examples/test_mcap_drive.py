@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from asyncdonkey import Vehicle
-from asyncdonkey.cli import main as cli_main
-from asyncdonkey.convert import convert
+from asyncdonkey.commands.cli import main as cli_main
+from asyncdonkey.commands.convert import convert
+from asyncdonkey.commands.replay import replay
+from asyncdonkey.commands.report import load_timing, render_html
 from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.reader import McapTub, decode_image, read_mcap
 from asyncdonkey.parts.tub import Tub
-from asyncdonkey.replay import replay
-from asyncdonkey.report import load_timing, render_html
 from asyncdonkey.testing import VirtualClockLoop
 
 from .example_loader import load_example
@@ -33,7 +33,7 @@ with contextlib.redirect_stdout(io.StringIO()):
     from donkeycar.parts.tub_v2 import Tub as DkTub
 
 car_py = load_example("car")
-CLI = [sys.executable, "-m", "asyncdonkey.cli"]
+CLI = [sys.executable, "-m", "asyncdonkey.commands"]
 
 
 def red_green_pilot(image: np.ndarray) -> tuple[float, float]:

@@ -38,7 +38,7 @@ def _free_port() -> int:
 def _spawn(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(
-        [sys.executable, "-m", "asyncdonkey.cli", "run", *args],
+        [sys.executable, "-m", "asyncdonkey.commands", "run", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import pytest
 
-from asyncdonkey.cli import main
+from asyncdonkey.commands.cli import main
 from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 from asyncdonkey.parts.zenoh.link import exposure, link_config
 from asyncdonkey.parts.zenoh.pairing import make_pair

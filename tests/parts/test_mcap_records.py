@@ -23,7 +23,7 @@ from mcap.writer import Writer
 import asyncdonkey.parts.background_writer as background_writer
 import asyncdonkey.parts.mcap.sink as sink_module
 from asyncdonkey import Vehicle
-from asyncdonkey.convert import tub_to_mcap
+from asyncdonkey.commands.convert import tub_to_mcap
 from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.encode import TickEncoder, TickSnapshot, TimeMap
 from asyncdonkey.parts.mcap.reader import McapTub, read_mcap

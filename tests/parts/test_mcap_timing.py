@@ -29,11 +29,11 @@ import pytest
 
 import asyncdonkey.parts.background_writer as background_writer
 from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.commands.report import load_timing, render_html
 from asyncdonkey.latest import Latest
 from asyncdonkey.parts.mcap import McapRecorder
 from asyncdonkey.parts.mcap.encode import LATENCY_TOPIC, PARTS_TOPIC, TICK_TOPIC
 from asyncdonkey.parts.mcap.reader import read_mcap
-from asyncdonkey.report import load_timing, render_html
 
 #: the camera here writes frame numbers, not images (what is measured is when frames come, not their pixels)
 pytestmark = pytest.mark.asyncdonkey_checked(False)

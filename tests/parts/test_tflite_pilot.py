@@ -284,8 +284,8 @@ def test_committed_simulator_tflite_pilot_matches_its_onnx_original():
 
 # ----------------------------------------------------------------------------------- replay
 def test_replay_takes_a_tflite_pilot_and_scores_it_as_its_onnx_original(tmp_path):
+    from asyncdonkey.commands.replay import ReplayError, replay
     from asyncdonkey.parts.tub import TubWriter
-    from asyncdonkey.replay import ReplayError, replay
 
     tub = tmp_path / "tub"
     writer = TubWriter(

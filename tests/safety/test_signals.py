@@ -88,7 +88,7 @@ class Car:
     def __init__(self, tmp_path: Path, kind: str, *extra: str) -> None:
         car = tmp_path / "car.py"
         car.write_text(CAR)
-        cmd = [sys.executable, "-m", "asyncdonkey.cli", "run", str(car), *extra, "--", kind]
+        cmd = [sys.executable, "-m", "asyncdonkey.commands", "run", str(car), *extra, "--", kind]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
 

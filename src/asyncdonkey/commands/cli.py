@@ -1,0 +1,247 @@
+"""The ``asyncdonkey`` command: ``run`` a car file, ``replay`` a drive, ``donkey`` a Donkeycar car, ``--version``.
+
+The car file convention: a Python file that defines ``build()`` returning a :class:`asyncdonkey.Vehicle`
+(a Donkeycar ``Vehicle`` is accepted too and converted). If ``build`` takes a parameter, it receives the
+arguments that follow ``--`` on the command line, so a car can have options of its own::
+
+    asyncdonkey run car.py --hz 20 --duration 30 -- --pilot models/pilot.onnx
+
+An optional module-level ``DRIVE_LOOP_HZ`` (Donkeycar's config name) sets the default rate.
+
+Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type, a ``DRIVE_LOOP_HZ`` that
+is not a rate) and bad option values print one line and exit with status 2, without a traceback: the user needs
+the file and line, or the option and what it expects, not our stack. A part failing while driving prints its
+one-line error and exits with status 1; ``--verbose`` adds the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import inspect
+import logging
+import os
+import sys
+import threading
+import time
+import traceback
+from pathlib import Path
+from types import ModuleType
+from typing import Any, NoReturn
+
+from .. import __version__
+from ..errors import AsyncdonkeyError
+from ..loop import PartError, Vehicle, run_blocking
+from ..options import BadValue, non_negative_int, option, positive_float
+
+__all__ = ["CarFileError", "car_rate_hz", "load_car", "main"]
+
+EXIT_USAGE = 2
+
+
+class CarFileError(AsyncdonkeyError):
+    """The car file cannot provide a vehicle; the message is one line for the user."""
+
+
+def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehicle, ModuleType]:
+    """Import the car file at ``path``, call its ``build()`` and return ``(vehicle, module)``."""
+    p = Path(path)
+    if not p.is_file():
+        raise CarFileError(f"car file {str(p)!r} not found")
+    spec = importlib.util.spec_from_file_location(f"asyncdonkey_car_{p.stem}", p)
+    if spec is None or spec.loader is None:
+        raise CarFileError(f"{p}: cannot be loaded as a Python module")
+    module = importlib.util.module_from_spec(spec)
+    # registered like an imported module, so dataclasses and pickling in the car file find it
+    sys.modules[spec.name] = module
+    sys.path.insert(0, str(p.resolve().parent))
+    try:
+        spec.loader.exec_module(module)
+    except SyntaxError as exc:
+        sys.modules.pop(spec.name, None)
+        raise CarFileError(f"{p}:{exc.lineno}: syntax error: {exc.msg}") from None
+    except Exception as exc:
+        sys.modules.pop(spec.name, None)
+        raise CarFileError(f"{p}: importing it raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
+    finally:
+        with_path = str(p.resolve().parent)
+        if sys.path and sys.path[0] == with_path:
+            sys.path.pop(0)
+    build = getattr(module, "build", None)
+    if build is None or not callable(build):
+        raise CarFileError(f"{p}: defines no build() function (it must return an asyncdonkey.Vehicle)")
+    try:
+        takes_args = len(inspect.signature(build).parameters) > 0
+    except (TypeError, ValueError):
+        takes_args = False
+    if car_args and not takes_args:
+        raise CarFileError(f"{p}: build() takes no arguments, but car options were given: {' '.join(car_args)}")
+    try:
+        vehicle = build(list(car_args or [])) if takes_args else build()
+    except SystemExit:
+        raise
+    except Exception as exc:
+        raise CarFileError(f"{p}: build() raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
+    if not isinstance(vehicle, Vehicle):
+        converted = _from_donkeycar(vehicle)
+        if converted is None:
+            raise CarFileError(f"{p}: build() returned {type(vehicle).__name__}, expected an asyncdonkey.Vehicle")
+        vehicle = converted
+    return vehicle, module
+
+
+def _from_donkeycar(obj: Any) -> Vehicle | None:
+    cls = type(obj)
+    if cls.__name__ == "Vehicle" and cls.__module__.startswith("donkeycar"):
+        return Vehicle.from_donkeycar(obj)
+    return None
+
+
+def _where(exc: BaseException, path: Path) -> str:
+    for frame in reversed(traceback.extract_tb(exc.__traceback__)):
+        if Path(frame.filename).resolve() == path.resolve():
+            return f" (line {frame.lineno})"
+    return ""
+
+
+def car_rate_hz(module: ModuleType, path: str | Path, default: float = 20.0) -> float:
+    """The car file's ``DRIVE_LOOP_HZ`` (``default`` without one); :class:`CarFileError` if it is not a rate."""
+    value = getattr(module, "DRIVE_LOOP_HZ", default)
+    try:
+        return positive_float(value)
+    except BadValue as exc:
+        raise CarFileError(f"{path}: DRIVE_LOOP_HZ: {exc} (the drive loop rate in Hz)") from None
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line (``prog: error: message``) with exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="asyncdonkey", description="asyncio-native robot runtime")
+    parser.add_argument("--version", action="version", version=f"asyncdonkey {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    run = sub.add_parser("run", help="drive a car file (a Python file whose build() returns a Vehicle)")
+    run.add_argument("car", help="path to the car file, e.g. examples/car.py")
+    run.add_argument(
+        "--hz",
+        type=option(positive_float),
+        default=None,
+        help="drive loop rate (default: the file's DRIVE_LOOP_HZ, else 20)",
+    )
+    run.add_argument("--max-loops", type=option(non_negative_int), default=None, help="stop after N ticks")
+    run.add_argument("--duration", type=option(positive_float), default=None, help="stop after S seconds")
+    run.add_argument(
+        "--verbose",
+        action="store_true",
+        help="jitter warnings, the profiler table every 200 loops, and the traceback of a part failure",
+    )
+    run.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
+    run.add_argument(
+        "--precise", action="store_true", help="spin the last stretch before each tick: tighter ticks for more CPU"
+    )
+    run.epilog = "Arguments after a lone -- are passed to the car's build()."
+    try:
+        from .replay import add_replay_parser
+    except ImportError:
+        pass
+    else:
+        add_replay_parser(sub)
+    from .donkey import add_donkey_parser
+
+    add_donkey_parser(sub)
+    from .convert import add_convert_parser
+    from .report import add_report_parser
+
+    add_convert_parser(sub)
+    add_report_parser(sub)
+    from .quantize import add_quantize_parser
+
+    add_quantize_parser(sub)
+    from .zenoh import add_zenoh_parsers
+
+    add_zenoh_parsers(sub)
+    return parser
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    car_args = list(getattr(args, "car_args", []))
+    try:
+        vehicle, module = load_car(args.car, car_args)
+        rate = args.hz if args.hz is not None else car_rate_hz(module, args.car)
+    except CarFileError as exc:
+        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        report = run_blocking(
+            vehicle.run_with_signals(
+                rate, args.max_loops, duration=args.duration, verbose=args.verbose, precise=args.precise
+            ),
+            use_uvloop=not args.no_uvloop,
+        )
+    except PartError as exc:
+        if args.verbose:
+            traceback.print_exception(exc, file=sys.stderr)
+        print(f"asyncdonkey: {exc}", file=sys.stderr)
+        return _leave(1)
+    if report.shutdown_abandoned:
+        print(
+            f"asyncdonkey: shutdown of {', '.join(map(repr, report.shutdown_abandoned))} did not finish in time",
+            file=sys.stderr,
+        )
+        return _leave(1)
+    return _leave(0)
+
+
+#: how long the interpreter may take to exit after a drive before the process is ended without it
+EXIT_GRACE_S = 2.0
+
+
+def _leave(status: int) -> int:
+    """Return ``status``, guarding the interpreter's exit: a part that left a thread busy (a hung executor
+    call, which the interpreter joins at exit) must not keep the process alive after the report. A daemon
+    timer ends the process ``EXIT_GRACE_S`` after the drive if the normal exit has not happened by then."""
+
+    def guard() -> None:
+        time.sleep(EXIT_GRACE_S)
+        busy = [t.name for t in threading.enumerate() if t.is_alive() and not t.daemon]
+        print(f"asyncdonkey: exiting without waiting for threads still running: {', '.join(busy)}", file=sys.stderr)
+        sys.stderr.flush()
+        os._exit(status or 1)
+
+    threading.Thread(target=guard, name="asyncdonkey-exit-guard", daemon=True).start()
+    return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    car_args: list[str] = []
+    if argv[:1] == ["run"] and "--" in argv:
+        cut = argv.index("--")
+        argv, car_args = argv[:cut], argv[cut + 1 :]
+    args = parser.parse_args(argv)
+    args.car_args = car_args
+    if args.command == "run":
+        return _cmd_run(args)
+    if args.command == "replay":
+        from .replay import replay_main
+
+        return int(replay_main(args))
+    if args.command == "donkey":
+        from .donkey import donkey_main
+
+        return donkey_main(args)
+    handler = getattr(args, "handler", None)
+    if handler is not None:  # subcommands that name their own handler (convert, report)
+        return int(handler(args))
+    parser.print_help()
+    return EXIT_USAGE
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

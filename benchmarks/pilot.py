@@ -5,7 +5,7 @@ Two models, each in four forms:
 * **Donkeycar-shaped CNN**: the layers of Donkeycar's ``KerasLinear`` (five convolutions, two dense layers,
   seeded random weights; about a millisecond of compute). ONNX float32 from
   :func:`~asyncdonkey.pilot_export.export_donkey_linear_shaped`; ONNX INT8 from ``asyncdonkey quantize``
-  (:func:`~asyncdonkey.quantize.quantize_pilot`) calibrated on a simulator tub; TFLite float32 and full-integer
+  (:func:`~asyncdonkey.commands.quantize.quantize_pilot`) calibrated on a simulator tub; TFLite float32 and full-integer
   INT8 with the same weights, built with TensorFlow by ``examples/make_tflite_models.py --bench`` into
   ``benchmarks/models/`` (3.3 MB, not committed: without TensorFlow those rows say so).
 * **Simulator pilot** (``examples/models/sim_pilot.onnx``, linear on 800 features; a tenth of the CNN's
@@ -151,7 +151,7 @@ def measure_form(form: str, path: Path | None, image: np.ndarray, tub: Path, qui
             "missing": f"no {path.name if path else 'model'}: run examples/make_tflite_models.py "
             "--bench where TensorFlow installs",
         }
-    from asyncdonkey.replay import replay
+    from asyncdonkey.commands.replay import replay
 
     pilot = load_pilot(path, offload=False)
     bare, pred = bare_and_predict(pilot, image, 400 if quick else 2000)
@@ -187,7 +187,7 @@ def measure_model(label: str, paths: dict[str, Path | None], image: np.ndarray, 
 
 
 def measure(quick: bool) -> dict:
-    from asyncdonkey.quantize import quantize_pilot
+    from asyncdonkey.commands.quantize import quantize_pilot
 
     image = camera_frame()
     with tempfile.TemporaryDirectory(prefix="pilot-bench-") as tmp:

@@ -37,7 +37,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import socket
 import ssl
 import sys
 import threading
@@ -52,6 +51,7 @@ from ...contracts import Contracts, Gate
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from ..control import DRIVE_MODES, USER, normalise_mode
+from .addresses import DriveUrl, InterfaceTable, drive_urls, system_interfaces
 from .auth import TOKEN_PARAM, Access, Sessions, WebConfigError, is_loopback, new_token, origin_allowed
 from .calibrate import (
     CALIBRATION,
@@ -192,6 +192,8 @@ class WebController:
         self.max_throttle = float(max_throttle)
         self.announce = announce
         self.qr = qr
+        #: lists the interfaces whose addresses are printed (tests give a fake table)
+        self.interfaces: InterfaceTable = system_interfaces
         self.ssl_context = ssl_context
         self.health_every_s = float(health_every_s)
         self.backlog = backlog
@@ -304,8 +306,8 @@ class WebController:
             self._access.cookie = f"asyncdonkey-token-{self.port}"
             self._sessions.cookie = f"asyncdonkey-session-{self.port}"
             self._origin = clock.now()
-            urls = await loop.run_in_executor(None, self._urls)  # may ask the resolver for this host's addresses
-            self.url = urls[0]
+            urls = await loop.run_in_executor(None, self._urls)  # lists the interfaces (a netlink round trip)
+            self.url = urls[0].url
             self._announce(urls)
             self.listening.set()
             tasks = [
@@ -677,21 +679,22 @@ class WebController:
                     self._broadcast_now({"health": health})
 
     # ================================================================================== start-up message
-    def _urls(self) -> list[str]:
+    def _urls(self) -> list[DriveUrl]:
+        """The drive URLs to print, the one for the QR code first (:mod:`.addresses`)."""
         scheme = "https" if self.ssl_context is not None else "http"
         query = f"?{TOKEN_PARAM}={self.token}" if self.token else ""
         if self.host in ("", "0.0.0.0", "::"):
-            hosts = [*_lan_addresses(), f"{socket.gethostname()}.local"]
-        else:
-            hosts = [f"[{self.host}]" if ":" in self.host else self.host]
-        return [f"{scheme}://{h}:{self.port}/drive{query}" for h in hosts]
+            return drive_urls(scheme, self.port, f"/drive{query}", self.interfaces)
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return [DriveUrl(f"{scheme}://{host}:{self.port}/drive{query}")]
 
-    def _announce(self, urls: list[str]) -> None:
+    def _announce(self, urls: list[DriveUrl]) -> None:
         logger.info("web controller listening on %s:%d", self.host, self.port)
         out = self.announce
         if out is None:
             return
-        lines = ["Drive from a browser (phone on the car's network):", *(f"  {u}" for u in urls)]
+        lines = ["Drive from a browser (phone on the car's network):"]
+        lines += [f"  {u.url}" + (f"  ({u.note})" if u.note else "") for u in urls]
         if self.token:
             lines.append(
                 "Anyone with this link can drive"
@@ -702,22 +705,8 @@ class WebController:
         if show_qr:
             import segno
 
-            segno.make(urls[0], error="L").terminal(out=out, compact=True)
+            segno.make(urls[0].url, error="L").terminal(out=out, compact=True)
         out.flush()
-
-
-def _lan_addresses() -> list[str]:
-    """This host's non-loopback IPv4 addresses, as a phone on the same network would reach it."""
-    try:
-        infos = socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)
-    except OSError:
-        return []
-    seen: list[str] = []
-    for info in infos:
-        addr = str(info[4][0])
-        if not is_loopback(addr) and addr not in seen:
-            seen.append(addr)
-    return seen
 
 
 def _check_origin(request: web.Request) -> None:

@@ -20,7 +20,8 @@ import threading
 from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
-from .clock import _TICK_GRID, SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
+from .clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
+from .clock import TICK_GRID as _TICK_GRID
 from .errors import PartError, PartInterrupted
 from .memory import Memory
 from .pipeline import Guard, Reaction, after_store, build_pipelines

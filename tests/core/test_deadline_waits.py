@@ -21,7 +21,7 @@ from collections.abc import Awaitable, Callable
 import pytest
 import uvloop
 
-from asyncdonkey import Poller, Vehicle, _timerfd, clock
+from asyncdonkey import Poller, Vehicle, _precise_wait, _timerfd, clock
 from asyncdonkey.clock import Clock, DeadlineWaiter, get_clock
 from asyncdonkey.virtual_loop import VirtualClockLoop
 
@@ -214,11 +214,11 @@ def test_timerfd_that_cannot_be_created_falls_back_to_loop_timers(monkeypatch):
 @pytest.mark.parametrize("sleeps", [1, 2])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_mode, sleeps, monkeypatch):
-    monkeypatch.setattr(clock, "_learned", {})  # its own samples only, none taken over
+    monkeypatch.setattr(_precise_wait, "_learned", {})  # its own samples only, none taken over
     # one sleep or two throughout, whatever this machine's wake-ups do: a switch swaps the window's samples
     # (tested on its own below)
-    monkeypatch.setattr(clock, "_TWO_STAGE_ABOVE_S", math.inf)
-    monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
+    monkeypatch.setattr(_precise_wait, "_TWO_STAGE_ABOVE_S", math.inf)
+    monkeypatch.setattr(_precise_wait, "_ONE_STAGE_BELOW_S", -math.inf)
     spacing = 0.004
     # how many samples the waiter had at each refresh of its window: on a loaded machine a wait that finds its
     # deadline (or its spin window) already passed learns nothing, so the refreshes need not fall at waits 65
@@ -242,10 +242,12 @@ def test_precise_mode_never_early_and_learns_its_spin_window(loop_factory, wait_
             # the window now comes from what was observed: after the warm-up, every few waits, a high quantile of
             # the early timer's lateness less the tolerance precise mode accepts, within the floor and the
             # ceiling. On a quiet machine the last refresh was due at wait 96 and applied when wait 97 was armed.
-            assert refreshed_with and refreshed_with[-1] >= clock._LATE_WARMUP
+            assert refreshed_with and refreshed_with[-1] >= _precise_wait._LATE_WARMUP
             samples = sorted(waiter._late[: refreshed_with[-1]])
-            q = samples[min(len(samples) - 1, int(clock._LATE_QUANTILE * len(samples)))]
-            expected = min(max(q - clock.PRECISE_TOLERANCE_S, clock._WINDOW_FLOOR_S), clock._WINDOW_CEIL_S)
+            q = samples[min(len(samples) - 1, int(_precise_wait._LATE_QUANTILE * len(samples)))]
+            expected = min(
+                max(q - clock.PRECISE_TOLERANCE_S, _precise_wait._WINDOW_FLOOR_S), _precise_wait._WINDOW_CEIL_S
+            )
             assert waiter.spin_window_s == pytest.approx(expected)
             assert waiter.spin_window_s != start_window or expected == start_window
             assert waiter.sleeps == (sleeps if waiter.mode == "timerfd" else 1)
@@ -292,7 +294,7 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
     assert report.lateness_ms["50%"] < 50.0
     # what precise mode spun at most per tick is in the report, learned within its bounds
     assert report.spin_window_ms is not None
-    assert clock._WINDOW_FLOOR_S * 1e3 <= report.spin_window_ms <= clock._WINDOW_CEIL_S * 1e3
+    assert _precise_wait._WINDOW_FLOOR_S * 1e3 <= report.spin_window_ms <= _precise_wait._WINDOW_CEIL_S * 1e3
     sleeps = {1: "one sleep", 2: "two sleeps"}[report.precise_sleeps]
     assert f"ms (learned; after {sleeps})" in v.format_report(report)
     plain = Vehicle()
@@ -306,8 +308,10 @@ def test_precise_vehicle_ticks_are_never_early_and_report_as_usual():
 @pytest.mark.parametrize("two", [True, False], ids=["two-sleeps", "one-sleep"])
 def test_the_report_says_how_many_times_precise_ticks_slept(two, monkeypatch):
     """A drive at a rate where the process learned two sleeps pays off reports 2; where one is enough, 1."""
-    cls = clock._period_class(1 / 200)
-    monkeypatch.setattr(clock, "_learned", {cls: clock._Learned(array("d", [100e-6] * 100), two, array("d"))})
+    cls = _precise_wait._period_class(1 / 200)
+    monkeypatch.setattr(
+        _precise_wait, "_learned", {cls: _precise_wait._Learned(array("d", [100e-6] * 100), two, array("d"))}
+    )
 
     class Noop:
         def run(self):
@@ -628,12 +632,12 @@ def _lateness(k: int) -> float:
 
 
 def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned(monkeypatch):
-    monkeypatch.setattr(clock, "_learned", {})
-    monkeypatch.setattr(clock, "_learned_window_s", None)
+    monkeypatch.setattr(_precise_wait, "_learned", {})
+    monkeypatch.setattr(_precise_wait, "_learned_window_s", None)
     first = _unrun_precise_waiter()
     try:
-        assert first.spin_window_s == clock._WINDOW_START_S  # nothing learned in this process yet: the guess
-        _teach(first, _every(0.002, clock._LATE_WARMUP + 2), _lateness)
+        assert first.spin_window_s == _precise_wait._WINDOW_START_S  # nothing learned in this process yet: the guess
+        _teach(first, _every(0.002, _precise_wait._LATE_WARMUP + 2), _lateness)
         learned = first.spin_window_s
     finally:
         _close(first)
@@ -649,15 +653,15 @@ def test_a_new_precise_waiter_starts_from_the_window_the_last_one_learned(monkey
 def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeypatch):
     """Wake-up latency depends on how long the machine slept: what is learned is kept per period class, and a
     new waiter starts from its own rate's, not from whatever rate learned last."""
-    monkeypatch.setattr(clock, "_learned", {})
-    monkeypatch.setattr(clock, "_learned_window_s", None)
+    monkeypatch.setattr(_precise_wait, "_learned", {})
+    monkeypatch.setattr(_precise_wait, "_learned_window_s", None)
     # two sleeps throughout: a switch to one would start the window's samples afresh from the first sleep's
-    monkeypatch.setattr(clock, "_ONE_STAGE_BELOW_S", -math.inf)
+    monkeypatch.setattr(_precise_wait, "_ONE_STAGE_BELOW_S", -math.inf)
 
     def learn(spacing_s: float, late_s: float) -> float:
         waiter = _unrun_precise_waiter()
         try:
-            _teach(waiter, _every(spacing_s, clock._LATE_WARMUP + 2), lambda k: late_s)
+            _teach(waiter, _every(spacing_s, _precise_wait._LATE_WARMUP + 2), lambda k: late_s)
             return waiter.spin_window_s
         finally:
             _close(waiter)
@@ -675,38 +679,38 @@ def test_a_precise_waiter_starts_from_what_was_learned_at_its_own_period(monkeyp
     slow = learn(0.006, 150e-6)  # deadlines 6 ms apart, then 1.1 ms apart
     fast = learn(0.0011, 60e-6)
     assert (slow, fast) == (pytest.approx(130e-6), pytest.approx(40e-6))
-    slow_class, fast_class = clock._period_class(0.006), clock._period_class(0.0011)
+    slow_class, fast_class = _precise_wait._period_class(0.006), _precise_wait._period_class(0.0011)
     assert slow_class != fast_class
     # what each rate learned from is kept under its class
-    assert list(clock._learned[slow_class].late) == [150e-6] * clock._LATE_WARMUP
-    assert list(clock._learned[fast_class].late) == [60e-6] * clock._LATE_WARMUP
-    assert clock._learned_window_s == fast  # the last one learned: the start for an unknown period
+    assert list(_precise_wait._learned[slow_class].late) == [150e-6] * _precise_wait._LATE_WARMUP
+    assert list(_precise_wait._learned[fast_class].late) == [60e-6] * _precise_wait._LATE_WARMUP
+    assert _precise_wait._learned_window_s == fast  # the last one learned: the start for an unknown period
     # pretend the two rates woke differently late, so which one a new waiter starts from shows
-    clock._learned[slow_class] = clock._Learned(array("d", [300e-6] * 200), True, array("d"))
-    clock._learned[fast_class] = clock._Learned(array("d", [100e-6] * 200), True, array("d"))
+    _precise_wait._learned[slow_class] = _precise_wait._Learned(array("d", [300e-6] * 200), True, array("d"))
+    _precise_wait._learned[fast_class] = _precise_wait._Learned(array("d", [100e-6] * 200), True, array("d"))
     assert started_at(0.006) == (pytest.approx(300e-6 - clock.PRECISE_TOLERANCE_S), 200)
     assert started_at(0.0011) == (pytest.approx(100e-6 - clock.PRECISE_TOLERANCE_S), 200)
-    unknown = clock._period_class(0.5)
-    assert unknown not in clock._learned
-    assert started_at(0.5) == (clock._learned_window_s, 0)  # nothing for that rate: the last window
+    unknown = _precise_wait._period_class(0.5)
+    assert unknown not in _precise_wait._learned
+    assert started_at(0.5) == (_precise_wait._learned_window_s, 0)  # nothing for that rate: the last window
 
 
 def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(monkeypatch):
     """A restarted drive keeps the quantile over the wake-ups before it: its first few dozen, one of them an
     outlier, do not set the window (a fresh waiter's first estimate is the largest of them)."""
-    monkeypatch.setattr(clock, "_learned", {})
+    monkeypatch.setattr(_precise_wait, "_learned", {})
     period = 0.01
-    cls = clock._period_class(period)
+    cls = _precise_wait._period_class(period)
     typical, outlier = 100e-6, 400e-6
 
     def first_window(past: array | None) -> float:
         if past is not None:
-            clock._learned[cls] = clock._Learned(past, True, array("d"))
+            _precise_wait._learned[cls] = _precise_wait._Learned(past, True, array("d"))
         waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
         try:
             waiter._enter_period_class(cls)
             waiter._learn(outlier)
-            for _ in range(clock._LATE_WARMUP - 1):
+            for _ in range(_precise_wait._LATE_WARMUP - 1):
                 waiter._learn(typical)
             waiter._refresh_window()
             return waiter.spin_window_s
@@ -719,22 +723,22 @@ def test_a_waiter_that_takes_over_learned_samples_is_not_thrown_by_one_outlier(m
     carried = first_window(array("d", [typical] * 1000))
     assert carried == pytest.approx(typical - clock.PRECISE_TOLERANCE_S)
     # and what it learned is stored oldest first, its own samples last, for the next one
-    stored = clock._learned[cls].late
-    assert len(stored) == clock._LATE_SAMPLES and stored[-clock._LATE_WARMUP] == outlier
+    stored = _precise_wait._learned[cls].late
+    assert len(stored) == _precise_wait._LATE_SAMPLES and stored[-_precise_wait._LATE_WARMUP] == outlier
 
 
 def test_a_precise_waiter_that_has_learned_keeps_its_own_window_when_its_period_changes(monkeypatch):
-    monkeypatch.setattr(clock, "_learned", {})
+    monkeypatch.setattr(_precise_wait, "_learned", {})
     waiter = _unrun_precise_waiter()
     try:
-        deadlines = _every(0.0021, clock._LATE_WARMUP + 2)
+        deadlines = _every(0.0021, _precise_wait._LATE_WARMUP + 2)
         _teach(waiter, deadlines, _lateness)
         own = waiter.spin_window_s
         assert own == pytest.approx(95e-6 - clock.PRECISE_TOLERANCE_S)  # learned from its own wake-ups
-        another_rate = clock._Learned(array("d", [own + 0.000_2] * 200), waiter._two_stage, array("d"))
-        clock._learned[clock._period_class(0.04)] = another_rate
+        another_rate = _precise_wait._Learned(array("d", [own + 0.000_2] * 200), waiter._two_stage, array("d"))
+        _precise_wait._learned[_precise_wait._period_class(0.04)] = another_rate
         _teach(waiter, _every(0.04, 2, after=deadlines[-1]), _lateness)  # two deadlines 40 ms apart: a new class
-        assert waiter._period_class == clock._period_class(0.04)
+        assert waiter._period_class == _precise_wait._period_class(0.04)
         assert waiter.spin_window_s == own
     finally:
         _close(waiter)
@@ -744,7 +748,7 @@ def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice
     """The first sleep's lateness decides: a 99th percentile close to the median (a busy machine, a small board)
     means one sleep is enough and the window is learned from that sleep; a long tail (an idle virtual machine)
     means two, with the window of the second sleep, as learned the last time this waiter slept twice."""
-    monkeypatch.setattr(clock, "_learned", {})
+    monkeypatch.setattr(_precise_wait, "_learned", {})
     waiter = DeadlineWaiter(uvloop.new_event_loop(), precise=True)
 
     def first_sleeps(lateness: list[float]) -> None:
@@ -754,21 +758,21 @@ def test_precise_mode_sleeps_once_where_the_first_sleeps_tail_is_short_and_twice
 
     try:
         assert waiter._two_stage
-        for _ in range(clock._LATE_WARMUP):
+        for _ in range(_precise_wait._LATE_WARMUP):
             waiter._learn(60e-6)  # the second sleep's lateness
-        first_sleeps([50e-6 + (k % 10) * 2e-6 for k in range(clock._FIRST_SAMPLES)])  # tail 18 µs over median
+        first_sleeps([50e-6 + (k % 10) * 2e-6 for k in range(_precise_wait._FIRST_SAMPLES)])  # tail 18 µs over median
         waiter._refresh_window()
         assert not waiter._two_stage
         assert waiter.spin_window_s == pytest.approx(68e-6 - clock.PRECISE_TOLERANCE_S)  # the first sleep's q99
-        assert list(waiter._other_late) == [60e-6] * clock._LATE_WARMUP  # the second sleep's, kept
+        assert list(waiter._other_late) == [60e-6] * _precise_wait._LATE_WARMUP  # the second sleep's, kept
         # a long tail: 3 % of the (now only) sleeps 400 µs late
-        for k in range(clock._FIRST_SAMPLES):
+        for k in range(_precise_wait._FIRST_SAMPLES):
             waiter._learn(400e-6 if k % 32 == 0 else 50e-6)
         waiter._refresh_window()
         assert waiter._two_stage and waiter._guard_s == 0.0  # (armed at the next wait)
         assert waiter.spin_window_s == pytest.approx(60e-6 - clock.PRECISE_TOLERANCE_S)
         waiter._target(time.monotonic() + 1)
-        assert waiter._guard_s == clock._GUARD_S
+        assert waiter._guard_s == _precise_wait._GUARD_S
     finally:
         waiter.close()
         waiter._loop.close()
@@ -871,11 +875,12 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
     the rest is spun: each deadline arms two one-shot timers, never a periodic one, and the callback never runs
     early. A series too fast for a guard sleeps once per deadline, and so does one at a rate where this process
     learned that one sleep is enough (the window then from those samples)."""
-    monkeypatch.setattr(clock, "_learned_window_s", None)  # the start window throughout (no refresh in 20 waits)
-    monkeypatch.setattr(clock, "_learned", {})
+    # the start window throughout (no refresh in 20 waits)
+    monkeypatch.setattr(_precise_wait, "_learned_window_s", None)
+    monkeypatch.setattr(_precise_wait, "_learned", {})
     if learned_once:
-        cls = clock._period_class(period)
-        clock._learned[cls] = clock._Learned(array("d", [150e-6] * 100), False, array("d"))
+        cls = _precise_wait._period_class(period)
+        _precise_wait._learned[cls] = _precise_wait._Learned(array("d", [150e-6] * 100), False, array("d"))
     n = 20
 
     async def main() -> tuple[list[float], list[float], list[int], list[tuple[int, int]], float, float]:
@@ -912,7 +917,7 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
     window = min(window, period * clock.SPIN_BUDGET)
     targets = {math.ceil((d - window) * 1e9) for d in deadlines}
     if sleeps == 2:
-        assert guard == clock._GUARD_S
+        assert guard == _precise_wait._GUARD_S
         firsts = {math.ceil((d - window - guard) * 1e9) for d in deadlines}
         # every deadline arms its guard, and then its window unless the first sleep woke too
         # late for a second one (a stalled machine): then it spins from there
@@ -930,7 +935,7 @@ def test_precise_mode_sleeps_twice_a_guard_before_its_window_then_spins(
 def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(loop_factory, monkeypatch):
     """The loop is held past the end of the guard sleep until just before the spin window: too close for a
     second sleep (it would wake after the spin), so the waiter spins from there, arming nothing more."""
-    monkeypatch.setattr(clock, "_learned_window_s", None)
+    monkeypatch.setattr(_precise_wait, "_learned_window_s", None)
 
     async def main() -> tuple[list[int], float, float, float]:
         waiter = DeadlineWaiter(precise=True)
@@ -949,7 +954,7 @@ def test_precise_mode_spins_from_a_guard_sleep_that_woke_too_late_for_a_second(l
 
     armed, deadline, target, returned = run_on(loop_factory, main())
     assert returned >= deadline
-    assert armed == [math.ceil((target - clock._GUARD_S) * 1e9)]  # the guard sleep only
+    assert armed == [math.ceil((target - _precise_wait._GUARD_S) * 1e9)]  # the guard sleep only
 
 
 @pytest.mark.realtime
@@ -1057,13 +1062,13 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypat
     """``early=True``: the callback runs when the early timer wakes (the spin window before the deadline) and
     spins the rest itself; without it the waiter spins and the callback never runs before its deadline."""
 
-    monkeypatch.setattr(clock, "_learned_window_s", None)  # start from the guess, so learning shows
+    monkeypatch.setattr(_precise_wait, "_learned_window_s", None)  # start from the guess, so learning shows
 
     async def main() -> tuple[list[float], list[float], float]:
         waiter = DeadlineWaiter(precise=True)
         now = time.monotonic
         t0 = now() + 0.01
-        deadlines = [t0 + k * 0.003 for k in range(clock._LATE_WARMUP + 40)]
+        deadlines = [t0 + k * 0.003 for k in range(_precise_wait._LATE_WARMUP + 40)]
         entered: list[float] = []
         done = asyncio.get_running_loop().create_future()
 
@@ -1087,9 +1092,10 @@ def test_precise_call_at_early_leaves_the_last_stretch_to_the_callback(monkeypat
     entered, deadlines, window = run_on(uvloop.new_event_loop, main())
     early = [d - t for t, d in zip(entered, deadlines, strict=True)]
     assert max(early) > 0  # some calls came before their deadline: the waiter did not spin for them
-    assert all(e <= clock._WINDOW_CEIL_S + 1e-4 for e in early)  # never before the armed (early) target
-    assert window <= clock._WINDOW_CEIL_S
-    assert window != clock._WINDOW_START_S or window == clock._WINDOW_CEIL_S  # learned from the arrivals
+    assert all(e <= _precise_wait._WINDOW_CEIL_S + 1e-4 for e in early)  # never before the armed (early) target
+    assert window <= _precise_wait._WINDOW_CEIL_S
+    # learned from the arrivals
+    assert window != _precise_wait._WINDOW_START_S or window == _precise_wait._WINDOW_CEIL_S
 
 
 @pytest.mark.parametrize(

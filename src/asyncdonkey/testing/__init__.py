@@ -10,7 +10,9 @@ Device models behave like the hardware at the register or byte level, so the rea
 * ``serial_peers``: pseudo-terminal peers (``EncoderPeer``, ``NmeaPeer``, ``RPLidarPeer``) that can be
   unplugged and plugged back;
 * ``camera_models``: synthetic MJPG videos and image folders with frame numbers encoded in the pixels;
-* ``joystick_model``: ``JoystickModel``, a FIFO emitting Linux joystick events.
+* ``joystick_model``: ``JoystickModel``, a FIFO emitting Linux joystick events;
+* ``picamera2_model``: ``Picamera2Model``, the picamera2 interface of a Raspberry Pi camera (requests, a finite
+  buffer pool, ``SensorTimestamp``, stalls and unplugging).
 
 They are importable from here by name; each module loads on first use (OpenCV, for one, is not imported by
 a test that only needs the virtual clock).
@@ -55,6 +57,7 @@ _LAZY = {
     ),
     "camera_models": ("FRAME_BITS", "make_frame_bgr", "frame_number", "write_image_folder", "write_test_video"),
     "joystick_model": ("JoystickModel",),
+    "picamera2_model": ("Picamera2Model", "Picamera2ModelHang"),
 }
 _WHERE = {name: module for module, names in _LAZY.items() for name in names}
 

@@ -348,11 +348,6 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         self._procs.append((transport, f"subprocess {transport.get_pid()} ({' '.join(map(str, argv))[:60]})"))
         return transport
 
-    @property
-    def pending_executor_calls(self) -> list[str]:
-        """Names of the functions whose executor calls are still running (virtual time waits for them)."""
-        return [job.name for job in self._jobs.values()]
-
     def hold_time_while(self, busy: Callable[[], bool], name: str) -> Callable[[], None]:
         """Keep virtual time still while ``busy()`` returns true; returns a function that removes the hold.
 

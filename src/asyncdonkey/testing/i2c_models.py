@@ -477,9 +477,6 @@ class SimulatedI2CBus:
             else:
                 self._faults.pop(address, None)
 
-    def transfers_to(self, address: int) -> list[I2CTransfer]:
-        return [t for t in self.log if t.address == address]
-
     def transaction(self, kind: str, messages: Sequence[tuple[int, bool, bytes | int]]) -> list[bytes]:
         """Run one START ... STOP transaction; each message is ``(address, read, data or read length)``.
 

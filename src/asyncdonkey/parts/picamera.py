@@ -110,6 +110,7 @@ class PiCamera:
         self.outputs: list[str] = ["cam/image_array", "cam/timestamp"] if timestamp else ["cam/image_array"]
         self._timestamp = bool(timestamp)
         self._origin = first.origin
+        self._clock_adopted = False
 
     # ---------------------------------------------------------------------------------------- outputs
     @property
@@ -130,6 +131,8 @@ class PiCamera:
 
     def run(self) -> Any:
         """The newest frame (never ``None``)."""
+        if not self._clock_adopted:
+            self._adopt_loop_clock()
         frame = self.poller.latest.sample[0]  # type: ignore[index]
         self._origin = frame.origin
         return (frame.image, frame.origin) if self._timestamp else frame.image
@@ -150,12 +153,20 @@ class PiCamera:
         return self.poller.latest.subscribe(on_frame)
 
     async def update(self) -> None:
-        """Capture at ``framerate`` off the loop until shutdown (stamps use this loop's clock from now on)."""
-        now = get_clock(asyncio.get_running_loop()).now
+        """Capture at ``framerate`` off the loop until shutdown."""
+        self._adopt_loop_clock()
+        await self.poller.update()
+
+    def _adopt_loop_clock(self) -> None:
+        """Stamp frames on the clock of the loop the part runs on, from its first tick or ``update()`` on."""
+        self._clock_adopted = True
+        try:
+            now = get_clock(asyncio.get_running_loop()).now
+        except RuntimeError:
+            return  # called outside a loop: keep time.monotonic
         if self.driver.clock is not now:
             self.driver.clock = now
             self._restamp(now)
-        await self.poller.update()
 
     def _restamp(self, now: Callable[[], float]) -> None:
         """The warm-up frame was stamped on another clock (built before the loop ran): map it onto this one."""

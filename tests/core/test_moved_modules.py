@@ -18,6 +18,7 @@ MOVED = {
     "asyncdonkey.donkey": "asyncdonkey.commands.donkey",
     "asyncdonkey.recordings": "asyncdonkey.commands.recordings",
     "asyncdonkey.parts.zenoh.cli": "asyncdonkey.commands.zenoh",
+    "asyncdonkey.testing.virtual_loop": "asyncdonkey.virtual_loop",
 }
 
 

@@ -17,13 +17,11 @@ def test_every_exported_name_resolves_to_the_object_in_its_module():
         assert module is None or module.startswith(("asyncdonkey.testing", "asyncdonkey.virtual_loop")), (name, module)
 
 
-def test_the_old_virtual_loop_module_still_exports_the_loop():
+def test_the_virtual_loop_is_exported_from_asyncdonkey_testing():
     import asyncdonkey.virtual_loop as core
-    from asyncdonkey.testing import virtual_loop as old
 
-    assert old.__all__ == core.__all__
     for name in core.__all__:
-        assert getattr(old, name) is getattr(core, name) is getattr(testing, name)
+        assert getattr(testing, name) is getattr(core, name)
 
 
 def test_the_lazy_name_lists_match_each_models_module():

@@ -1,5 +1,7 @@
-"""The virtual-clock loop, where it used to live: it is runtime code now, in :mod:`asyncdonkey.virtual_loop`
-(``asyncdonkey replay`` drives it). This module re-exports it so existing imports keep working."""
+"""Moved to :mod:`asyncdonkey.virtual_loop` (runtime code: ``asyncdonkey replay`` drives it; the testing package
+re-exports it as ``asyncdonkey.testing.VirtualClockLoop``); this old import path keeps working, with a
+DeprecationWarning."""
 
-from ..virtual_loop import *  # noqa: F403
-from ..virtual_loop import __all__  # noqa: F401
+from .._moved import alias
+
+alias(__name__, "asyncdonkey.virtual_loop")

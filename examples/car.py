@@ -55,6 +55,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.extras import require
 from asyncdonkey.options import non_negative_float, non_negative_int, option
 from asyncdonkey.parts.control import DRIVE_MODES, AutoRecordOnThrottle, DriveMode, PilotCondition, normalise_mode
 from asyncdonkey.parts.sim import TELEMETRY_OUTPUTS, ScriptedDriver, SimCar, Simulator
@@ -141,8 +142,10 @@ class Status:
     """A live one-line status (laps, achieved Hz, tick lateness p99, cross-track error) and the stop rule.
 
     ``run`` takes the tick's telemetry and asks the vehicle to stop after ``seconds`` of runtime clock or
-    ``laps`` laps. ``update`` is a background task that redraws the line every ``every`` seconds: in place
-    on a terminal, as separate lines (every few seconds) in a log.
+    ``laps`` laps, with that reason (the drive report's "stopped by"). ``update`` is a background task that
+    redraws the line every ``every`` seconds: in place on a terminal, as separate lines (every few seconds) in
+    a log. ``live=False`` (``--quiet``) leaves the line out; the summary of the drive is still written at the
+    end, as it is the drive's result.
     """
 
     def __init__(
@@ -154,8 +157,10 @@ class Status:
         laps: int = 0,
         stream: TextIO | None = sys.stderr,
         every: float = 0.5,
+        live: bool = True,
     ) -> None:
         self.vehicle = vehicle
+        self.live = live
         self.car = car
         self.seconds = seconds
         self.laps_target = laps
@@ -183,8 +188,10 @@ class Status:
         self.abs_cte_sum += abs(self.cte)
         self.abs_cte_max = max(self.abs_cte_max, abs(self.cte))
         self.off_track_ticks += bool(off_track)
-        if (self.seconds > 0 and now - self._t0 >= self.seconds) or (0 < self.laps_target <= self.laps):
-            self.vehicle.stop()
+        if self.seconds > 0 and now - self._t0 >= self.seconds:
+            self.vehicle.stop(f"time limit reached ({self.seconds:g} s)")
+        elif 0 < self.laps_target <= self.laps:
+            self.vehicle.stop(f"lap target reached ({self.laps_target} lap{'' if self.laps_target == 1 else 's'})")
 
     def line(self, hz: float) -> str:
         p99 = recent_lateness_p99_ms(self.vehicle) or 0.0
@@ -212,7 +219,7 @@ class Status:
             self._write(self.line(hz))
 
     def _write(self, text: str) -> None:
-        if self.stream is None:
+        if self.stream is None or not self.live:
             return
         if self.tty:
             self.stream.write("\r\x1b[2K" + text)
@@ -252,6 +259,7 @@ def make_car(
     ai_throttle_mult: float = 1.3,
     seed: int = 0,
     status: TextIO | None = sys.stderr,
+    live_status: bool = True,
     rate_hz: float = DRIVE_LOOP_HZ,
     pilot_mode: str = "frame",
     pilot_delay: float = 0.0,
@@ -275,6 +283,9 @@ def make_car(
     inference, to drive with the pilot a Raspberry Pi would run (``--pilot-delay 0.08``). ``web``: drive from a
     browser; the dict holds :class:`~asyncdonkey.parts.web.WebController` arguments (``{}`` for the defaults).
 
+    ``status`` is where the live status line and the drive's summary go (``None``: nowhere); ``live_status=False``
+    writes the summary alone.
+
     Returns the vehicle and the simulated car (for its simulator's state after the drive).
     """
     user_only = str(pilot) == "user"
@@ -289,6 +300,7 @@ def make_car(
     v.add(car.camera, outputs=["cam/image_array"])
     v.add(car.telemetry, outputs=list(TELEMETRY_OUTPUTS))
     if remote:
+        require("zenoh", "zenoh", "--pilot remote (a pilot over Zenoh)")
         from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, ZenohSubscriber
 
         link = ZenohLink(prefix, zenoh, insecure=insecure)
@@ -365,7 +377,7 @@ def make_car(
         fleet = FleetStatus(link, v, ages=["cam/image_array", "pilot/throttle", "sim/throttle"])
         v.add(fleet, inputs=["user/mode", "tub/num_records"])
     v.add(
-        Status(v, car, seconds=seconds, laps=laps, stream=status),
+        Status(v, car, seconds=seconds, laps=laps, stream=status, live=live_status),
         inputs=["sim/laps", "sim/cte", "sim/off_track"],
     )
     if mcap is not None:  # the whole drive (every channel, the loop's timing) for Foxglove and `report`
@@ -416,7 +428,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         default=0.0,
         help="add S seconds to each inference (0.08: a Raspberry Pi 4's float32 pilot)",
     )
-    ap.add_argument("--quiet", action="store_true", help="no live status line")
+    ap.add_argument(
+        "--quiet", action="store_true", help="no live status line (the drive's summary is still printed at the end)"
+    )
     ap.add_argument("--web", action="store_true", help="drive from a browser: the web controller replaces the script")
     ap.add_argument("--web-port", type=option(non_negative_int), default=8887, help="the web controller's port")
     ap.add_argument(
@@ -427,7 +441,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     net.add_argument(
         "--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 on a bench"
     )
-    net.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT")
+    net.add_argument(
+        "--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="a Zenoh endpoint to connect to"
+    )
     net.add_argument(
         "--prefix", default=REMOTE_PREFIX, help=f"key prefix of the car's channels (default {REMOTE_PREFIX})"
     )
@@ -450,6 +466,7 @@ def build(argv: list[str]) -> Vehicle:
     args = parse_args(argv)
     zenoh = None
     if args.pilot == "remote":
+        require("zenoh", "zenoh", "--pilot remote (a pilot over Zenoh)")
         from asyncdonkey.parts.zenoh import zenoh_config
 
         if not (args.zenoh_config or args.zenoh_listen or args.zenoh_connect):
@@ -476,7 +493,8 @@ def build(argv: list[str]) -> Vehicle:
         laps=args.laps,
         ai_throttle_mult=args.ai_throttle_mult,
         seed=args.seed,
-        status=None if args.quiet else sys.stderr,
+        status=sys.stderr,
+        live_status=not args.quiet,
         pilot_mode=args.pilot_mode,
         pilot_delay=args.pilot_delay,
         web={"port": args.web_port, "host": args.web_host} if args.web else None,

@@ -164,7 +164,7 @@ def test_importing_the_module_does_not_need_onnx(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    assert "needs the 'onnx' package" in out.stdout
+    assert "needs the quantize extra" in out.stdout and "pip install 'asyncdonkey[quantize]'" in out.stdout
 
 
 def test_committed_simulator_pilot_drives_a_clean_lap():

@@ -27,7 +27,7 @@ from 1.13 on read (``onnx`` 1.23 would otherwise write IR 14, newer than onnxrun
 Output bytes are deterministic for the same arguments: no timestamps, fixed producer fields, initialisers
 in a fixed order.
 
-``onnx`` is only needed to *write* models (it is in the ``test`` extra); it is imported inside the functions
+``onnx`` is only needed to *write* models (the ``quantize`` extra installs it); it is imported inside the functions
 that need it, so importing this module (for :func:`linear_features`, say) works without it.
 """
 
@@ -39,6 +39,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from .extras import require
 
 __all__ = [
     "DONKEY_CONVS",
@@ -275,14 +277,9 @@ def export_donkey_linear_shaped(
 
 # ---------------------------------------------------------------------------------------------- helpers
 def _onnx() -> tuple[Any, Any, Any]:
-    try:
-        import onnx
-        from onnx import helper, numpy_helper
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "asyncdonkey.pilot_export needs the 'onnx' package to write models "
-            "(pip install onnx, or install asyncdonkey with the 'test' extra)"
-        ) from exc
+    onnx = require("onnx", "quantize", "writing ONNX pilots (asyncdonkey.pilot_export)")
+    from onnx import helper, numpy_helper
+
     return onnx, helper, numpy_helper
 
 

@@ -151,7 +151,10 @@ def test_convert_refuses_to_overwrite_and_says_why(drive, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "already exists" in err and err.count("\n") == 1
     assert cli_main(["convert", str(tmp_path / "nothing"), str(tmp_path / "x.mcap")]) == 2
-    assert "neither a tub directory nor an MCAP file" in capsys.readouterr().err
+    assert f"no such file or directory: {tmp_path / 'nothing'}" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("not a recording")
+    assert cli_main(["convert", str(tmp_path / "notes.txt"), str(tmp_path / "x.mcap")]) == 2
+    assert "notes.txt is not a tub directory or an MCAP file" in capsys.readouterr().err
 
 
 class Stall:

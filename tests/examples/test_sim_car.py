@@ -18,7 +18,7 @@ async def test_scripted_user_drives_two_laps_and_records_them(tmp_path):
     status = io.StringIO()
     v, car = car_py.make_car(pilot="user", record=tmp_path / "tub", seconds=0, laps=2, status=status)
     report = await v.run(rate_hz=20, max_loop_count=20 * 200)
-    assert report.stop_reason == "stop()"  # the lap target stopped it, not the loop limit
+    assert report.stop_reason == "lap target reached (2 laps)"  # not the loop limit
     assert car.sim.laps.laps == 2
     assert car.sim.respawns == 0
     assert report.overruns == 0 and report.skipped_deadlines == 0
@@ -43,7 +43,7 @@ async def test_the_shipped_pilot_drives_three_clean_laps():
     v, car = car_py.make_car(seconds=0, laps=3, status=None)  # the defaults of `make run`: shipped model
     status = next(e.part for e in v.parts if e.name == "Status")
     report = await v.run(rate_hz=20, max_loop_count=20 * 300)
-    assert report.stop_reason == "stop()"
+    assert report.stop_reason == "lap target reached (3 laps)"
     assert car.sim.laps.laps == 3
     assert car.sim.respawns == 0 and status.off_track_ticks == 0
     assert status.abs_cte_max < 0.25  # the road is 1 m wide: never near its edge
@@ -59,7 +59,7 @@ async def test_the_shipped_tflite_pilot_drives_a_clean_lap():
     v, car = car_py.make_car(pilot=model, seconds=0, laps=1, status=None)
     status = next(e.part for e in v.parts if e.name == "Status")
     report = await v.run(rate_hz=20, max_loop_count=20 * 120)
-    assert report.stop_reason == "stop()" and car.sim.laps.laps == 1
+    assert report.stop_reason == "lap target reached (1 lap)" and car.sim.laps.laps == 1
     assert car.sim.respawns == 0 and status.off_track_ticks == 0
     assert report.parts["TflitePilot"]["count"] > 0
 
@@ -69,7 +69,7 @@ async def test_the_shipped_tflite_pilot_drives_a_clean_lap():
 async def test_stops_after_the_given_seconds_of_runtime_clock():
     v, car = car_py.make_car(pilot="user", seconds=3.0, status=None)
     report = await v.run(rate_hz=20, max_loop_count=10_000)
-    assert report.stop_reason == "stop()"
+    assert report.stop_reason == "time limit reached (3 s)"
     assert report.loops == 61  # ticks at 0, 0.05, ... 3.0 s; the one at 3.0 s asks to stop
     assert car.sim.progress > 2.0  # the car moved
 
@@ -90,7 +90,7 @@ async def test_laps_option_drives_until_that_many_laps_past_the_default_time():
     v = car_py.build(["--pilot", "user", "--laps", "2", "--quiet"])
     status = next(e.part for e in v.parts if e.name == "Status")
     report = await v.run(rate_hz=20, max_loop_count=20 * 200)
-    assert report.stop_reason == "stop()"
+    assert report.stop_reason == "lap target reached (2 laps)"
     assert status.laps == 2
     assert report.loops / 20 > car_py.DEFAULT_SECONDS  # two laps take longer than the default drive
 
@@ -100,7 +100,7 @@ async def test_laps_option_drives_until_that_many_laps_past_the_default_time():
 async def test_seconds_given_explicitly_still_limits_a_laps_drive():
     v = car_py.build(["--pilot", "user", "--laps", "2", "--seconds", "3", "--quiet"])
     report = await v.run(rate_hz=20, max_loop_count=20 * 200)
-    assert report.stop_reason == "stop()" and report.loops == 61  # 3 s, before the first lap
+    assert report.stop_reason == "time limit reached (3 s)" and report.loops == 61  # 3 s, before the first lap
 
 
 def test_car_option_defaults_and_bad_values(capsys):

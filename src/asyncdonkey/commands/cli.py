@@ -10,8 +10,11 @@ An optional module-level ``DRIVE_LOOP_HZ`` (Donkeycar's config name) sets the de
 
 Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type, a ``DRIVE_LOOP_HZ`` that
 is not a rate) and bad option values print one line and exit with status 2, without a traceback: the user needs
-the file and line, or the option and what it expects, not our stack. A part failing while driving prints its
-one-line error and exits with status 1; ``--verbose`` adds the traceback.
+the file and line, or the option and what it expects, not our stack. So does a missing extra, in any command
+(:class:`~asyncdonkey.extras.MissingExtra`: the feature and its ``pip install 'asyncdonkey[extra]'`` line). An
+option ``run`` does not know (``--seconds 5`` meant for the car) is named, with where car options go (after
+``--``) and ``run``'s own options. A part failing while driving prints its one-line error and exits with status 1;
+``--verbose`` adds the traceback.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from typing import Any, NoReturn
 
 from .. import __version__
 from ..errors import AsyncdonkeyError
+from ..extras import MissingExtra
 from ..loop import PartError, Vehicle, run_blocking
 from ..options import BadValue, non_negative_int, option, positive_float
 
@@ -57,6 +61,9 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
     sys.path.insert(0, str(p.resolve().parent))
     try:
         spec.loader.exec_module(module)
+    except MissingExtra:
+        sys.modules.pop(spec.name, None)
+        raise  # its one line says what to install; main() prints it
     except SyntaxError as exc:
         sys.modules.pop(spec.name, None)
         raise CarFileError(f"{p}:{exc.lineno}: syntax error: {exc.msg}") from None
@@ -78,7 +85,7 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
         raise CarFileError(f"{p}: build() takes no arguments, but car options were given: {' '.join(car_args)}")
     try:
         vehicle = build(list(car_args or [])) if takes_args else build()
-    except SystemExit:
+    except (SystemExit, MissingExtra):
         raise
     except Exception as exc:
         raise CarFileError(f"{p}: build() raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
@@ -125,15 +132,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"asyncdonkey {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     run = sub.add_parser("run", help="drive a car file (a Python file whose build() returns a Vehicle)")
-    run.add_argument("car", help="path to the car file, e.g. examples/car.py")
+    run.add_argument("car", help="path to the car file (a .py file defining build()), e.g. examples/car.py")
     run.add_argument(
         "--hz",
         type=option(positive_float),
         default=None,
-        help="drive loop rate (default: the file's DRIVE_LOOP_HZ, else 20)",
+        metavar="HZ",
+        help="drive loop rate in Hz, a positive number (default: the file's DRIVE_LOOP_HZ, else 20)",
     )
-    run.add_argument("--max-loops", type=option(non_negative_int), default=None, help="stop after N ticks")
-    run.add_argument("--duration", type=option(positive_float), default=None, help="stop after S seconds")
+    run.add_argument(
+        "--max-loops", type=option(non_negative_int), default=None, metavar="N", help="stop after N ticks (0 or more)"
+    )
+    run.add_argument(
+        "--duration", type=option(positive_float), default=None, metavar="S", help="stop after S seconds (S > 0)"
+    )
     run.add_argument(
         "--verbose",
         action="store_true",
@@ -143,7 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--precise", action="store_true", help="spin the last stretch before each tick: tighter ticks for more CPU"
     )
-    run.epilog = "Arguments after a lone -- are passed to the car's build()."
+    run.epilog = (
+        "Arguments after a lone -- are passed to the car's build(): asyncdonkey run examples/car.py -- --seconds 5 "
+        '(with make: make run ARGS="-- --seconds 5").'
+    )
+    parser.run_parser = run  # type: ignore[attr-defined]  # for the error naming run's own options
     try:
         from .replay import add_replay_parser
     except ImportError:
@@ -183,6 +199,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
             use_uvloop=not args.no_uvloop,
         )
     except PartError as exc:
+        if isinstance(exc.__cause__, MissingExtra):  # a part importing its extra when it starts
+            print(f"asyncdonkey: error: {exc.part}: {exc.__cause__}", file=sys.stderr)
+            return _leave(EXIT_USAGE)
         if args.verbose:
             traceback.print_exception(exc, file=sys.stderr)
         print(f"asyncdonkey: {exc}", file=sys.stderr)
@@ -224,8 +243,41 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["run"] and "--" in argv:
         cut = argv.index("--")
         argv, car_args = argv[:cut], argv[cut + 1 :]
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        if args.command == "run":
+            print(_unknown_run_options(parser, args.car, unknown), file=sys.stderr)
+            return EXIT_USAGE
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.car_args = car_args
+    try:
+        return _dispatch(parser, args)
+    except MissingExtra as exc:
+        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _unknown_run_options(parser: argparse.ArgumentParser, car: str, unknown: list[str]) -> str:
+    """The error for options ``run`` does not know: most often the car's own, given before ``--``."""
+    given = " ".join(unknown)
+    lines = [
+        f"asyncdonkey run: error: unrecognized arguments: {given}",
+        f"  options of the car file go after a lone --: asyncdonkey run {car} -- {given}",
+    ]
+    if os.environ.get("MAKELEVEL"):  # started by make: `make run ARGS="..."`
+        lines.append(f'  with make: make run ARGS="-- {given}"')
+    run_parser = getattr(parser, "run_parser", None)
+    if run_parser is not None:
+        own = [
+            " ".join(a.option_strings) + (f" {a.metavar or a.dest.upper()}" if a.nargs != 0 else "")
+            for a in run_parser._actions
+            if a.option_strings and a.dest != "help"
+        ]
+        lines.append(f"  asyncdonkey run's own options: {', '.join(own)} (see asyncdonkey run --help)")
+    return "\n".join(lines)
+
+
+def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "run":
         return _cmd_run(args)
     if args.command == "replay":

@@ -246,8 +246,9 @@ def convert(
     contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ConvertResult:
     """Tub directory → MCAP file, or MCAP file → tub directory, by what ``source`` is."""
-    from .recordings import is_mcap
+    from .recordings import check_recording, is_mcap
 
+    check_recording(source)
     if is_mcap(source):
         return mcap_to_tub(
             source, destination, image_key=image_key, channels=channels, only_when=only_when, contracts=contracts
@@ -266,11 +267,32 @@ def add_convert_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Tub directory -> MCAP file (look at it in Foxglove), or MCAP file -> tub directory "
         "(train on it with donkey train). The direction follows the source.",
     )
-    p.add_argument("source", help="a tub directory or an .mcap file")
-    p.add_argument("destination", help="the MCAP file or tub directory to create")
-    p.add_argument("--image-key", default="cam/image_array", help="the camera channel (default: %(default)s)")
-    p.add_argument("--channels", nargs="+", default=None, help="MCAP -> tub: the channels to keep (default: all)")
-    p.add_argument("--only-when", metavar="CHANNEL", default=None, help="MCAP -> tub: ticks where CHANNEL was true")
+    p.add_argument(
+        "source", help="what to convert: a tub directory or an .mcap file (both directions need the mcap extra)"
+    )
+    p.add_argument(
+        "destination",
+        help="what to create: an .mcap file from a tub, a new tub directory from an .mcap file (must not exist)",
+    )
+    p.add_argument(
+        "--image-key",
+        default="cam/image_array",
+        metavar="CHANNEL",
+        help="MCAP -> tub: the camera channel, one record per frame (default: %(default)s)",
+    )
+    p.add_argument(
+        "--channels",
+        nargs="+",
+        default=None,
+        metavar="CHANNEL",
+        help="MCAP -> tub: the channels to keep (default: every one a tub can store)",
+    )
+    p.add_argument(
+        "--only-when",
+        metavar="CHANNEL",
+        default=None,
+        help="MCAP -> tub: keep only the ticks where CHANNEL was true, e.g. recording",
+    )
     p.set_defaults(handler=convert_main)
     return p
 

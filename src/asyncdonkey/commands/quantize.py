@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from ..extras import require
 from ..parts.tub import Tub, TubError
 
 __all__ = ["METHODS", "QuantizeError", "QuantizeReport", "add_quantize_parser", "quantize_main", "quantize_pilot"]
@@ -148,7 +149,8 @@ def quantize_pilot(
 
     ``out`` defaults to ``<model>.int8.onnx`` beside the model. ``method``: one of :data:`METHODS`. Raises
     :class:`QuantizeError` (bad model, no frames, unwritable output), :class:`~asyncdonkey.parts.tub.TubError`
-    for the tub, and ``ImportError`` naming the ``quantize`` extra when ``onnx`` is missing.
+    for the tub, and :class:`~asyncdonkey.extras.MissingExtra` naming the ``quantize`` extra when ``onnx`` is
+    missing.
     """
     from ..parts.pilot import OnnxPilot, PilotModelError
 
@@ -168,11 +170,8 @@ def quantize_pilot(
         raise QuantizeError(f"--out {out_path} is the model itself; choose another file")
     if not out_path.absolute().parent.is_dir():
         raise QuantizeError(f"cannot write {out_path}: its directory does not exist")
-    try:
-        import onnx  # noqa: F401  (onnxruntime.quantization needs it)
-        from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
-    except ImportError as exc:
-        raise ImportError(f"quantizing needs the onnx package: pip install 'asyncdonkey[quantize]' ({exc})") from exc
+    require("onnx", "quantize", "asyncdonkey quantize")  # onnxruntime's quantization tools import it
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     images = tub_frames(tub, frames, image_key)
     try:
@@ -256,21 +255,44 @@ def add_quantize_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Quantize an ONNX pilot to INT8 (onnxruntime's static quantization, QDQ form) with frames "
         "from a tub as calibration data, then compare the INT8 model with the float one on those frames.",
     )
-    p.add_argument("model", help="the float32 ONNX pilot, e.g. models/pilot.onnx")
-    p.add_argument("--tub", required=True, help="a tub recorded by the car, e.g. data/tub")
-    p.add_argument("--out", default=None, help="the INT8 model to write (default: MODEL with .int8.onnx)")
-    p.add_argument("--frames", type=_positive_int, default=200, help="calibration frames (default: %(default)s)")
-    p.add_argument("--method", choices=sorted(METHODS), default="minmax", help="calibration (default: %(default)s)")
+    p.add_argument("model", help="the float32 ONNX pilot (.onnx), e.g. models/pilot.onnx")
+    p.add_argument(
+        "--tub",
+        required=True,
+        metavar="TUB",
+        help="a tub directory recorded by the car, whose frames calibrate the model, e.g. data/tub",
+    )
+    p.add_argument(
+        "--out", default=None, metavar="FILE", help="the INT8 .onnx model to write (default: MODEL with .int8.onnx)"
+    )
+    p.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=200,
+        metavar="N",
+        help="calibration frames spread over the tub, at least 1 (default: %(default)s)",
+    )
+    p.add_argument(
+        "--method", choices=sorted(METHODS), default="minmax", help="calibration method (default: %(default)s)"
+    )
     p.add_argument("--per-tensor", action="store_true", help="one weight scale per tensor, not per channel")
-    p.add_argument("--image-key", default="cam/image_array", help="the camera channel (default: %(default)s)")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument(
+        "--image-key",
+        default="cam/image_array",
+        metavar="CHANNEL",
+        help="the tub's camera channel (default: %(default)s)",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     p.set_defaults(handler=quantize_main)
     return p
 
 
 def quantize_main(args: argparse.Namespace) -> int:
     """Run ``asyncdonkey quantize``; errors print one line and return 2."""
+    from .recordings import check_tub_directory
+
     try:
+        check_tub_directory(args.tub, "--tub")
         report = quantize_pilot(
             args.model,
             args.tub,

@@ -683,24 +683,49 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``replay`` subcommand to the ``asyncdonkey`` parser's subparsers."""
     p = subparsers.add_parser(
         "replay",
-        help="run a recorded tub through a pilot at the recorded times and report its error",
-        description="Replay a tub's frames through a pilot on the virtual clock, at their recorded times, and "
-        "compare the pilot's angle and throttle with the recorded user values.",
+        help="run a recorded drive (a tub or an MCAP file) through a pilot at the recorded times and report its error",
+        description="Replay a recording's frames (a tub directory, or an MCAP file with the mcap extra) through a "
+        "pilot on the virtual clock, at their recorded times, and compare the pilot's angle and throttle with "
+        "the recorded user values.",
     )
-    p.add_argument("tub", help="the tub directory, e.g. data/tub_1")
-    p.add_argument("--pilot", required=True, help="the model to replay, .onnx or .tflite, e.g. models/pilot.onnx")
-    p.add_argument("--csv", metavar="FILE", default=None, help="write one row per record to FILE")
+    p.add_argument(
+        "tub",
+        metavar="RECORDING",
+        help="the recorded drive: a tub directory (data/tub_1) or an .mcap file (data/drive.mcap, mcap extra)",
+    )
+    p.add_argument(
+        "--pilot",
+        required=True,
+        help="the model file to replay: .onnx, or .tflite with the tflite extra, e.g. models/pilot.onnx",
+    )
+    p.add_argument("--csv", metavar="FILE", default=None, help="write one row per record to FILE (a new CSV file)")
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     p.add_argument(
         "--speed",
         type=option(positive_float),
         default=None,
-        help="replay in real time at this multiple of the recorded pace (default: the virtual clock, "
-        "as fast as the CPU allows)",
+        metavar="FACTOR",
+        help="replay in real time at this multiple of the recorded pace, a positive number (default: the "
+        "virtual clock, as fast as the CPU allows)",
     )
-    p.add_argument("--image-key", default="cam/image_array", help="the camera channel (default: %(default)s)")
-    p.add_argument("--angle-key", default="user/angle", help="the recorded angle (default: %(default)s)")
-    p.add_argument("--throttle-key", default="user/throttle", help="the recorded throttle (default: %(default)s)")
+    p.add_argument(
+        "--image-key",
+        default="cam/image_array",
+        metavar="CHANNEL",
+        help="the camera channel the pilot sees (default: %(default)s)",
+    )
+    p.add_argument(
+        "--angle-key",
+        default="user/angle",
+        metavar="CHANNEL",
+        help="the recorded angle to compare with (default: %(default)s)",
+    )
+    p.add_argument(
+        "--throttle-key",
+        default="user/throttle",
+        metavar="CHANNEL",
+        help="the recorded throttle to compare with (default: %(default)s)",
+    )
     return p
 
 

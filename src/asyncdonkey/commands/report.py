@@ -79,8 +79,9 @@ class DriveTiming:
 
 def load_timing(path: str | os.PathLike[str]) -> DriveTiming:
     """Read the timing of an MCAP recording, or the record intervals of a tub."""
-    from .recordings import is_mcap
+    from .recordings import check_recording, is_mcap
 
+    check_recording(path)
     if is_mcap(path):
         return _load_mcap(path)
     return _load_tub(path)
@@ -439,8 +440,19 @@ def add_report_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Timing report of an MCAP recording (or the record intervals of a tub) as one "
         "self-contained HTML page.",
     )
-    p.add_argument("source", help="an .mcap file recorded with McapRecorder, or a tub directory")
-    p.add_argument("-o", "--output", default=None, help="the HTML file (default: beside the source)")
+    p.add_argument(
+        "source",
+        metavar="RECORDING",
+        help="an .mcap file recorded with McapRecorder (mcap extra; the full timing), or a tub directory "
+        "(record intervals only)",
+    )
+    p.add_argument(
+        "-o",
+        "--output",
+        default=None,
+        metavar="FILE",
+        help="the HTML file to write (default: beside the source: drive.mcap -> drive.html, a tub -> TUB/timing.html)",
+    )
     p.set_defaults(handler=report_main)
     return p
 

@@ -28,13 +28,13 @@ Everything but loading and one inference is :class:`~asyncdonkey.parts.pilot_bas
 
 from __future__ import annotations
 
-import importlib
 import os
 import threading
 from typing import Any
 
 import numpy as np
 
+from ..extras import require
 from .pilot_base import (
     IMAGE_SHAPE,
     PilotBase,
@@ -54,17 +54,8 @@ _TYPES = {np.dtype(np.float32), np.dtype(np.uint8), np.dtype(np.int8)}
 def tflite_interpreter() -> Any:
     """The ``Interpreter`` class of the first of :data:`INTERPRETER_MODULES` that imports.
 
-    Raises ``ImportError`` saying what to install."""
-    errors = []
-    for module in INTERPRETER_MODULES:
-        try:
-            return importlib.import_module(module).Interpreter
-        except ImportError as exc:
-            errors.append(f"{module}: {exc}")
-    raise ImportError(
-        "running .tflite pilots needs LiteRT: pip install 'asyncdonkey[tflite]' (the ai-edge-litert package); "
-        + "; ".join(errors)
-    )
+    Raises :class:`~asyncdonkey.extras.MissingExtra` (an ``ImportError``) naming the ``tflite`` extra."""
+    return require(INTERPRETER_MODULES, "tflite", "running .tflite pilots").Interpreter
 
 
 class TflitePilot(PilotBase):

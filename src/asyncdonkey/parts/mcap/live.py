@@ -27,6 +27,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ...errors import AsyncdonkeyError
+from ...extras import require
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 from .recorder import TickRecorder
 from .relay import SubprotocolRelay
@@ -120,7 +121,7 @@ class FoxgloveServer(TickRecorder):
         drain_timeout_s: float = 2.0,
         max_clients: int = 8,
     ) -> None:
-        import foxglove
+        foxglove = require("foxglove", "mcap", "the Foxglove live view")
 
         where = f"FoxgloveServer({host}:{port})"
         self._check_writer_args(where, queue_size, 1, 1.0, drain_timeout_s)

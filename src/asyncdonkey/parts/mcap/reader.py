@@ -34,6 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ...extras import require
 from ..tub import TubFormatError, TubImageError, TubNotFoundError
 from .encode import topic_for
 from .sink import CLOCK_METADATA, SESSION_METADATA
@@ -109,6 +110,7 @@ def read_mcap(
     path: str | os.PathLike[str], topics: set[str] | None = None, *, decode: bool = True
 ) -> Iterator[McapMessage]:
     """Every message of the file (or of ``topics``), in file order, decoded (``decode=False``: raw bytes)."""
+    require("mcap", "mcap", "reading MCAP recordings")
     from mcap.records import Channel, Message, Schema
 
     schemas: dict[int, Schema] = {}
@@ -136,6 +138,7 @@ def read_mcap(
 
 def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
     """Topics, message count, metadata records and whether the file was cut short."""
+    require("mcap", "mcap", "reading MCAP recordings")
     from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 
     if not Path(path).is_file():
@@ -176,6 +179,7 @@ def protobuf_class(name: str, data: bytes) -> Any:
     key = (name, data)
     cls = _PROTO_CACHE.get(key)
     if cls is None:
+        require("google.protobuf", "mcap", "decoding the Foxglove messages of MCAP recordings")
         from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
         fds = descriptor_pb2.FileDescriptorSet.FromString(data)

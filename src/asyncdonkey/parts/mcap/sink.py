@@ -36,6 +36,7 @@ from collections.abc import Callable
 from typing import IO, Any
 
 from ..._libc import libc_function
+from ...extras import require
 from ..tub.fileio import with_filename
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap
 
@@ -202,6 +203,8 @@ class McapSink:
         chunk_size: int = 4 * 1024 * 1024,
         open_file: Callable[[str], IO[bytes]] | None = None,
     ) -> None:
+        require("mcap", "mcap", "recording MCAP files")
+        require("foxglove", "mcap", "recording MCAP files")  # the encoder's image and scan schemas
         from mcap.writer import CompressionType, Writer
 
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -357,6 +360,8 @@ class McapSink:
 
 
 def _open(path: str) -> IO[bytes]:
+    """Create the file, and its directory as the tub writer does (``--mcap runs/today/drive.mcap`` just works)."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     return open(path, "wb", buffering=0)
 
 

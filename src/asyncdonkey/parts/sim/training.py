@@ -214,7 +214,15 @@ def fit_ridge(x: np.ndarray, y: np.ndarray, alpha: float) -> tuple[np.ndarray, n
 
 
 def evaluate(pilot: LinearPilot, samples: Samples, baseline_angle: float) -> dict[str, float]:
-    """Angle and throttle mean squared error on ``samples``, beside a constant-angle baseline."""
+    """Angle and throttle mean squared error on ``samples``, beside a constant-angle baseline.
+
+    ``angle_r2`` is the coefficient of determination of the steering fit against that baseline,
+    ``1 - angle_mse / baseline_angle_mse``: 1 when the pilot steers exactly as the labels do, 0 when it does no
+    better than always steering ``baseline_angle``, negative when worse. It measures imitation of the driver who
+    labelled ``samples`` on those frames, not driving: a pilot that steers its own way can drive clean laps and
+    still score below 0 (it then disagrees with the driver more than a constant angle does), so whether a pilot
+    drives is :func:`drive`'s :attr:`DriveResult.on_track_fraction`, not this figure.
+    """
     pred = pilot.predict(samples.features)
     pa = np.clip(pred[:, 0], -1, 1)
     pt = np.clip(pred[:, 1], -1, 1)
@@ -225,13 +233,18 @@ def evaluate(pilot: LinearPilot, samples: Samples, baseline_angle: float) -> dic
         "baseline_angle_mse": base,
         "angle_mae": float(np.mean(np.abs(pa - samples.angle))),
         "throttle_mse": float(np.mean((pt - samples.throttle) ** 2)),
-        "skill": 1.0 - mse / base if base > 0 else 0.0,
+        "angle_r2": 1.0 - mse / base if base > 0 else 0.0,
     }
 
 
 @dataclass
 class DriveResult:
-    """A closed-loop drive: laps completed, how far off centre, how often it left the road."""
+    """A closed-loop drive: laps completed, how far off centre, how often it left the road.
+
+    ``on_track_distance`` is the distance along the road covered in steps that start and end on the road (the
+    steps off it, and the one that respawns the car, add nothing); :attr:`on_track_fraction` is that share of
+    ``distance``: the drive's score, 1.0 for a drive that never left the road.
+    """
 
     seconds: float
     laps: int
@@ -240,6 +253,14 @@ class DriveResult:
     max_abs_cte: float
     off_track_frames: int
     respawns: int
+    on_track_distance: float = 0.0
+
+    @property
+    def on_track_fraction(self) -> float:
+        """Share of the distance driven on the road, in [0, 1] (0 for a car that did not move forward)."""
+        if self.distance <= 0:
+            return 0.0
+        return min(1.0, max(0.0, self.on_track_distance / self.distance))
 
     @property
     def clean(self) -> bool:
@@ -256,12 +277,16 @@ def drive(
     start = sim.progress
     ctes = np.empty(n)
     off = 0
+    on_track = 0.0
     respawns0 = sim.respawns
     for i in range(n):
         a, t = pilot(sim.render())
+        before, was_on = sim.progress, abs(sim.cte) <= sim.track.half_width
         tel = sim.step(dt, a, t if throttle is None else throttle)
         ctes[i] = abs(tel.cte)
         off += tel.off_track
+        if was_on and not tel.off_track:  # on the road at both ends of the step (a respawn starts off it)
+            on_track += sim.progress - before
     return DriveResult(
         seconds=n * dt,
         laps=sim.telemetry().laps,
@@ -270,6 +295,7 @@ def drive(
         max_abs_cte=float(ctes.max()) if n else 0.0,
         off_track_frames=int(off),
         respawns=sim.respawns - respawns0,
+        on_track_distance=on_track,
     )
 
 

@@ -5,12 +5,15 @@ Run it with::
     asyncdonkey run examples/car_pi.py                                  # drive by hand, record with B
     asyncdonkey run examples/car_pi.py -- --web                         # drive from a phone's browser instead
     asyncdonkey run examples/car_pi.py -- --model models/pilot.onnx     # A cycles user / local_angle / local
+    asyncdonkey run examples/car_pi.py -- --camera picamera2 --web      # the CSI camera (libcamera), a phone
     asyncdonkey run examples/car_pi.py -- STEERING_LEFT_PWM=470 CAMERA_INDEX=1 HAVE_IMU=false
 
 Settings use Donkeycar's config names (see :class:`PiCarConfig` and ``docs/car-pi.md``); any of them can be
-overridden after ``--`` as ``NAME=VALUE``. The parts, in tick order::
+overridden after ``--`` as ``NAME=VALUE``. ``--camera`` picks the camera: ``opencv`` (the default: a USB camera,
+a ``/dev/video*`` device or a video file), ``picamera2`` (the Raspberry Pi camera on its ribbon, through
+libcamera; setup in ``docs/raspberry-pi.md``) or ``none``. The parts, in tick order::
 
-    CvCamera            -> cam/image_array
+    CvCamera/PiCamera   -> cam/image_array                                         (not with --camera none)
     JoystickController  -> user/angle, user/throttle, user/mode, recording
       or WebController  cam/image_array, tub/num_records, user/mode, recording       (--web)
                         -> user/angle, user/throttle, user/mode, recording, web/buttons
@@ -35,9 +38,11 @@ from asyncdonkey.parts.camera import CvCamera
 from asyncdonkey.parts.control import DRIVE_MODES, DriveMode, PilotCondition
 from asyncdonkey.parts.controller import JoystickController, JoystickMapping
 from asyncdonkey.parts.imu import IMU
+from asyncdonkey.parts.picamera import PiCamera
 from asyncdonkey.parts.tub import TubWriter
 
 DRIVE_LOOP_HZ = 20
+CAMERAS = ("opencv", "picamera2", "none")
 
 
 @dataclass
@@ -45,12 +50,14 @@ class PiCarConfig:
     """The car's settings, named as in Donkeycar's ``config.py`` / ``myconfig.py``."""
 
     # camera (the loop rate is DRIVE_LOOP_HZ at module level, 20; `asyncdonkey run --hz N` overrides it)
-    CAMERA_INDEX: int | str = 0  # device index, /dev/video* path, or a video file (replays it)
+    CAMERA_INDEX: int | str = 0  # device index, /dev/video* path, or a video file (replays it); picamera2: number
     IMAGE_W: int = 160
     IMAGE_H: int = 120
     IMAGE_DEPTH: int = 3
-    CAMERA_FRAMERATE: int = 20  # pacing of a video file; a live camera paces itself
+    CAMERA_FRAMERATE: int = 20  # picamera2: the camera's rate; opencv: pacing of a video file
     CAMERA_LOOP: bool = True  # a video file restarts at its end (False: the drive stops there)
+    CAMERA_VFLIP: bool = False  # picamera2: flip the picture (a camera mounted upside down: both)
+    CAMERA_HFLIP: bool = False
     # joystick
     JOYSTICK_DEVICE_FILE: str = "/dev/input/js0"
     JOYSTICK_MAX_THROTTLE: float = 0.5
@@ -142,6 +149,13 @@ def parse_args(argv: list[str] | None) -> tuple[PiCarConfig, argparse.Namespace]
     parser = argparse.ArgumentParser(prog="car_pi.py", description="Raspberry Pi donkey car")
     parser.add_argument("--model", help="pilot model, .onnx or .tflite (enables the local_angle and local modes)")
     parser.add_argument("--tub", help="record into this tub (default: DATA_PATH)")
+    parser.add_argument(
+        "--camera",
+        choices=CAMERAS,
+        default="opencv",
+        help="opencv: USB camera, /dev/video* or a video file (CAMERA_INDEX); picamera2: the Pi's ribbon camera "
+        "through libcamera; none: no camera (no pilot, no images recorded)",
+    )
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--js", action="store_true", help="drive with the gamepad (USE_JOYSTICK_AS_DEFAULT)")
     which.add_argument("--web", action="store_true", help="drive from a browser (prints the URL with its token)")
@@ -150,25 +164,51 @@ def parse_args(argv: list[str] | None) -> tuple[PiCarConfig, argparse.Namespace]
     cfg = PiCarConfig()
     for s in args.settings:
         cfg.override(s)
+    if args.camera == "none" and args.model:
+        parser.error("--model needs a camera: the pilot drives from cam/image_array (use --camera opencv or picamera2)")
+    if args.camera == "picamera2" and not isinstance(cfg.CAMERA_INDEX, int):
+        parser.error(f"--camera picamera2 takes a camera number as CAMERA_INDEX, got {cfg.CAMERA_INDEX!r}")
     return cfg, args
 
 
-def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig | None = None) -> Vehicle:
-    """Build the car. ``buses`` is an I2C bus registry (tests pass a simulated one; default: the real buses)."""
+def build(
+    argv: list[str] | None = None,
+    *,
+    buses: Any = None,
+    cfg: PiCarConfig | None = None,
+    camera_options: dict[str, Any] | None = None,
+) -> Vehicle:
+    """Build the car. ``buses`` is an I2C bus registry (tests pass a simulated one; default: the real buses);
+    ``camera_options`` are more keyword arguments for the camera part (tests give ``PiCamera`` a picamera2 model's
+    module and sensor clock)."""
     parsed_cfg, args = parse_args(argv)
     cfg = cfg or parsed_cfg
     v = Vehicle()
 
-    camera = CvCamera(
-        cfg.IMAGE_W,
-        cfg.IMAGE_H,
-        cfg.IMAGE_DEPTH,
-        iCam=cfg.CAMERA_INDEX,
-        framerate=cfg.CAMERA_FRAMERATE,
-        loop=cfg.CAMERA_LOOP,
-        on_end=v.stop,
-    )
-    v.add(camera, outputs=["cam/image_array"], threaded=True, name="camera")
+    if args.camera == "picamera2":
+        camera: Any = PiCamera(
+            cfg.IMAGE_W,
+            cfg.IMAGE_H,
+            cfg.IMAGE_DEPTH,
+            vflip=cfg.CAMERA_VFLIP,
+            hflip=cfg.CAMERA_HFLIP,
+            framerate=cfg.CAMERA_FRAMERATE,
+            camera_num=int(cfg.CAMERA_INDEX),
+            **(camera_options or {}),
+        )
+        v.add(camera, outputs=["cam/image_array"], name="camera")
+    elif args.camera == "opencv":
+        camera = CvCamera(
+            cfg.IMAGE_W,
+            cfg.IMAGE_H,
+            cfg.IMAGE_DEPTH,
+            iCam=cfg.CAMERA_INDEX,
+            framerate=cfg.CAMERA_FRAMERATE,
+            loop=cfg.CAMERA_LOOP,
+            on_end=v.stop,
+            **(camera_options or {}),
+        )
+        v.add(camera, outputs=["cam/image_array"], threaded=True, name="camera")
 
     steering = PWMSteering.from_config(cfg, buses=buses)
     throttle = PWMThrottle.from_config(cfg, buses=buses)
@@ -215,8 +255,11 @@ def build(argv: list[str] | None = None, *, buses: Any = None, cfg: PiCarConfig 
     v.add(steering, inputs=["angle"], name="steering")
     v.add(throttle, inputs=["throttle", "throttle@age"], name="throttle")
 
-    inputs = ["cam/image_array", "user/angle", "user/throttle", "user/mode"]
-    types = ["image_array", "float", "float", "str"]
+    inputs = ["user/angle", "user/throttle", "user/mode"]
+    types = ["float", "float", "str"]
+    if args.camera != "none":
+        inputs.insert(0, "cam/image_array")
+        types.insert(0, "image_array")
     if cfg.HAVE_IMU:
         imu = IMU(cfg.IMU_ADDRESS, sensor=cfg.IMU_SENSOR, dlp_setting=cfg.IMU_DLP_CONFIG, buses=buses)
         v.add(imu, outputs=imu.outputs, name="imu")

@@ -71,9 +71,7 @@ async def test_with_picamera2_the_car_records_its_frames_and_a_stalled_camera_st
     assert len({esc for _, esc in driver.pulses[35:51]}) > 3  # the pilot works the ESC
     stalled = seen[51:]
     assert all(mode == "local" and pilot != 0.0 for mode, pilot, *_ in stalled)  # it still asks to drive...
-    assert all(
-        b[3] == pytest.approx(a[3] + 0.05) for a, b in zip(stalled, stalled[1:], strict=False)
-    )  # ...on an old frame
+    assert all(b[3] == pytest.approx(a[3] + 0.05) for a, b in itertools.pairwise(stalled))  # ...on an old frame
     too_old = next(k for k, s in enumerate(seen) if k > 50 and s[3] >= 0.25)
     # PWMThrottle's own failsafe: a command 0.25 s old or more holds the ESC at the stopped pulse (the pulse a
     # tick writes is what the driver sees at the next tick's start)

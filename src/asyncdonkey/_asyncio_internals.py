@@ -29,7 +29,6 @@ __all__ = [
     "LoopIteration",
     "SeqTimerHandle",
     "idle_pool_worker",
-    "is_wrap_future",
     "newest_thread",
     "next_live_timer",
     "problems",
@@ -288,14 +287,10 @@ def _untimed_acquire_line() -> int | None:
 _UNTIMED_ACQUIRE_LINE = _untimed_acquire_line()
 
 
-#: the code object :func:`is_wrap_future` compares with, for a caller that inlines that test
+#: the code object of ``asyncio.wrap_future``: a ``loop.create_future`` called from it is executor work on its way
+#: to the loop, through ``run_in_executor`` or directly (``wrap_future(pool.submit(...))``). The virtual loop
+#: compares its caller's code object with it inline (it runs every tick).
 WRAP_FUTURE = _WRAP_FUTURE
-
-
-def is_wrap_future(caller: FrameType) -> bool:
-    """Whether ``caller`` (the frame that called ``loop.create_future``) is ``asyncio.wrap_future``: that is how
-    executor work reaches the loop, through ``run_in_executor`` or directly (``wrap_future(pool.submit(...))``)."""
-    return caller.f_code is _WRAP_FUTURE
 
 
 def idle_pool_worker(frame: FrameType) -> bool:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any, Protocol
 
 __all__ = ["LoopActivity", "PipelineHost", "ShutdownScope", "Stoppable"]
@@ -64,7 +64,3 @@ class PipelineHost(Protocol):
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor: ...
 
     def background_failed(self, e: Any, exc: BaseException, what: str = ...) -> None: ...
-
-
-#: a part's failure handler on a background path: ``failed(entry, exception)``
-Failed = Callable[[Any, Exception], None]

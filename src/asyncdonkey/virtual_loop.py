@@ -299,7 +299,7 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
     # -- executor tracking ---------------------------------------------------------------------------------
     def create_future(self) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = _Future(loop=self)
-        # asyncio.wrap_future: executor work is on its way (_internals.is_wrap_future, inlined: runs every tick)
+        # called from asyncio.wrap_future: executor work is on its way (see _internals.WRAP_FUTURE)
         if _getframe(1).f_code is _WRAP_FUTURE:
             self._jobs[fut] = _Job("a concurrent.futures job")
             self._quiet_threads = -1

@@ -213,6 +213,30 @@ def test_missing_libcamera_bindings_name_the_module(monkeypatch):
 
 
 @pytest.mark.realtime
+@pytest.mark.parametrize(
+    "error",
+    [
+        ValueError("numpy.dtype size changed, may indicate binary incompatibility. Expected 96 from C header, got 88"),
+        ImportError("numpy.core.multiarray failed to import"),
+    ],
+)
+def test_apt_simplejpeg_built_for_numpy_1_gets_its_own_hint(monkeypatch, error):
+    """picamera2 imports apt's simplejpeg, compiled for Raspberry Pi OS's numpy 1; the venv has numpy 2."""
+
+    class Finder:
+        def find_spec(self, name, path=None, target=None):
+            if name == "picamera2":
+                raise error
+            return None
+
+    monkeypatch.delitem(sys.modules, "picamera2", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [Finder(), *sys.meta_path])
+    with pytest.raises(PicameraMissing) as info:
+        import_picamera2()
+    assert "pip install --force-reinstall simplejpeg" in str(info.value) and "\n" not in str(info.value)
+    assert "apt install" not in str(info.value)
+
+
 def test_close_wakes_a_capture_waiting_on_a_stalled_camera():
     r = Picamera2Model(fps=20, clock="real")
     cam = PiCameraDriver(picamera2=r.module, sensor_clock_ns=r.clock_ns, timeout_s=30.0)

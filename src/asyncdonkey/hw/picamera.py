@@ -81,16 +81,41 @@ class PicameraMissing(CameraError, ImportError):
 
 
 def import_picamera2() -> ModuleType:
-    """Import ``picamera2``, or raise :class:`PicameraMissing` saying to install it with apt."""
+    """Import ``picamera2``, or raise :class:`PicameraMissing` saying how to install it, in one line.
+
+    Two failures are told apart: picamera2 (or libcamera's bindings) not visible from this Python (install it
+    with apt, make the venv with ``--system-site-packages``), and apt's ``simplejpeg``, which picamera2 imports,
+    built for the numpy 1 of Raspberry Pi OS while the venv has numpy 2 (our dependencies bring it): numpy then
+    refuses the compiled module ("numpy.dtype size changed"), and a ``simplejpeg`` wheel from PyPI, built for
+    numpy 2, installed into the venv fixes it.
+    """
     try:
         return importlib.import_module("picamera2")
-    except ImportError as exc:
+    except (ImportError, ValueError) as exc:
+        if _numpy_abi_clash(exc):
+            raise PicameraMissing(
+                f"picamera2 cannot be imported: a compiled module it uses was built for numpy 1 ({_first_line(exc)}); "
+                "install a simplejpeg built for this venv's numpy 2 with "
+                "`.venv/bin/pip install --force-reinstall simplejpeg` (see docs/raspberry-pi.md)"
+            ) from None
+        if not isinstance(exc, ImportError):
+            raise
         missing = getattr(exc, "name", None) or "picamera2"
         raise PicameraMissing(
             f"the Raspberry Pi camera needs picamera2 ({missing} cannot be imported): install it with "
             f"`sudo apt install {APT_PACKAGE}` and make the venv with `python3 -m venv --system-site-packages` "
             f"so it sees apt's packages (see docs/raspberry-pi.md)"
         ) from None
+
+
+def _numpy_abi_clash(exc: BaseException) -> bool:
+    text = str(exc)
+    return "numpy" in text and ("size changed" in text or "multiarray" in text or "NumPy 1.x" in text)
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
 
 
 def boottime_ns() -> int:

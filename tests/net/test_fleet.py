@@ -65,16 +65,16 @@ async def test_two_cars_publish_status_and_the_view_shows_both():
         now = max(t for _, t in cars.values())
         screen = render_fleet(cars, now)
         lines = screen.splitlines()
-        assert lines[0] == "asyncdonkey top - 2 cars seen, 2 live"
-        assert lines[1].split()[:3] == ["CAR", "HZ", "LATE"]
+        assert lines[0] == "asyncdonkey top - 2 cars seen, 2 live, 0 stale, 0 silent (sorted by name)"
+        assert lines[1].split()[:4] == ["CAR", "STATE", "HZ", "LAT"]
         alpha = next(line for line in lines if line.startswith("cars/alpha"))
         bravo = next(line for line in lines if line.startswith("cars/bravo"))
-        assert " local " in alpha and " user " in bravo
+        assert " local " in alpha and " user " in bravo and alpha.split()[1] == "live"
         assert "pilot/throttle=" in alpha and "cam/image_array=-" in alpha
         assert any(line.strip().startswith("parts ms: ") and "Busy" in line for line in lines)
-        # 10 s later nothing more came from either: both shown as gone
-        assert "0 live" in render_fleet(cars, now + 10)
-        assert render_fleet(cars, now + 10).count(" gone") == 2
+        # 10 s later nothing more came from either: both shown as silent
+        assert "0 live" in render_fleet(cars, now + 10) and "2 silent" in render_fleet(cars, now + 10)
+        assert render_fleet(cars, now + 10).count(" SILENT ") == 2
     finally:
         watcher.close()
         for link in (a, b, view_link):

@@ -5,18 +5,26 @@ Needs the ``zenoh`` extra (``pip install 'asyncdonkey[zenoh]'``). See ``docs/sca
 * :class:`ZenohLink`, :func:`zenoh_config` — one session and the key prefix of a car's channels.
 * :class:`ZenohPublisher`, :class:`ZenohSubscriber` — the parts (``group=PILOT_COMMAND``: the remote
   pilot's angle and throttle as one sample).
+* :class:`PilotServer`, :class:`BatchPilot`, :class:`FrameBatcher` — one pilot model for a fleet, batched.
+* :mod:`.pairing` — the secure configs of ``asyncdonkey zenoh-pair`` (one car, or a fleet and its server).
 * :mod:`.codec` — the wire format (documented for non-Python clients).
 """
 
+from .batch_infer import BatchPilot
+from .batcher import FrameBatcher
 from .codec import CodecError, decode, encode
 from .link import ZenohConfigError, ZenohLink, link_config, zenoh_config
 from .pairing import COMMAND_CHANNELS, PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
+from .pilot_server import PilotServer
 
 __all__ = [
     "COMMAND_CHANNELS",
     "PILOT_COMMAND",
+    "BatchPilot",
     "CodecError",
+    "FrameBatcher",
+    "PilotServer",
     "ZenohConfigError",
     "ZenohLink",
     "ZenohPublisher",

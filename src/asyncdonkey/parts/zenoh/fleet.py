@@ -9,13 +9,19 @@ Every ``every_s`` its background task publishes one JSON document (encoding ``ap
 
     {"car": "cars/car1", "hz": 20.0, "lateness_p99_ms": 0.41, "overruns": 0, "ticks": 1200,
      "parts": {"SimCamera": 0.05, ...}, "ages_ms": {"cam/image_array": 12.3, ...},
+     "latency_p50_ms": 11.2, "latency_p99_ms": 17.0,
      "mode": "local", "records": 0, "rtt_ms": 0.3, "sent_unix": 1767000000.0}
 
 (``parts``: mean ms per part over the last ``window`` ticks; ``ages_ms``: age of each listed channel's value
-when the status was made, ``null`` if never written; ``overruns``: ticks over their period in that window.)
+when the status was made, ``null`` if never written; ``overruns``: ticks over their period in that window;
+``latency_*``: the sensing-to-actuation latency of the car's first actuator over that window, ``null``
+without one.)
 
-``asyncdonkey top`` subscribes to ``cars/*/status`` and redraws one row per car, htop-style; a car whose
-status has not come for ``3 * every`` shows as gone.
+``asyncdonkey top`` subscribes to ``cars/*/status`` and redraws one row per car, htop-style, sorted by name,
+latency or age (``--sort``). Each row's state says what to look at first: ``live``; ``STALE`` when one of the
+car's listed ages is past the stale limit (``--stale-ms``, default 250, the cars' failsafe window: that car is
+probably holding its failsafe); ``SILENT`` when its status has not come for three periods (the car, its link
+or its process is gone).
 """
 
 from __future__ import annotations
@@ -32,10 +38,11 @@ from typing import Any, TextIO
 import numpy as np
 
 from ...clock import get_clock
+from ...extras import require
 from ...periodic import Periodic
 from .link import ZenohLink, zenoh_config
 
-__all__ = ["STATUS_KEY", "FleetStatus", "FleetWatcher", "render_fleet", "top_main"]
+__all__ = ["SORT_KEYS", "STATUS_KEY", "FleetStatus", "FleetWatcher", "car_state", "render_fleet", "top_main"]
 
 STATUS_KEY = "status"
 
@@ -86,6 +93,8 @@ class FleetStatus:
             a = mem.age(ch)
             ages[ch] = round(a * 1e3, 1) if math.isfinite(a) else None
         rtt = self.link.rtt_s()
+        latency: Any = next(iter(prof.latency.values()), None)
+        lat = latency.recent(drop_last=False)[-w:] if latency is not None else ()
         return {
             "car": self.link.prefix,
             "hz": round(hz, 2),
@@ -94,6 +103,8 @@ class FleetStatus:
             "ticks": self.ticks,
             "parts": parts,
             "ages_ms": ages,
+            "latency_p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 2) if len(lat) else None,
+            "latency_p99_ms": round(float(np.percentile(lat, 99)) * 1e3, 2) if len(lat) else None,
             "mode": None if self.mode is None else str(self.mode),
             "records": self.records if isinstance(self.records, int | float) else None,
             "rtt_ms": round(rtt[1] * 1e3, 3) if rtt else None,
@@ -163,32 +174,82 @@ def _ms(x: Any, fmt: str = "{:.2f}") -> str:
     return "-" if x is None else fmt.format(x)
 
 
+#: what ``top --sort`` orders the cars by
+SORT_KEYS = ("name", "latency", "age")
+
+
+def car_state(doc: Mapping[str, Any], seen_s: float, *, gone_after_s: float = 3.0, stale_ms: float = 250.0) -> str:
+    """``"SILENT"`` (no status for ``gone_after_s``), ``"STALE"`` (an age past ``stale_ms``) or ``"live"``."""
+    if seen_s > gone_after_s:
+        return "SILENT"
+    ages = doc.get("ages_ms") or {}
+    if any(isinstance(v, int | float) and v > stale_ms for v in ages.values()):
+        return "STALE"
+    return "live"
+
+
+def _oldest_age(doc: Mapping[str, Any]) -> float:
+    ages = [v for v in (doc.get("ages_ms") or {}).values() if isinstance(v, int | float)]
+    return max(ages) if ages else math.inf
+
+
+def _order(cars: Mapping[str, tuple[Mapping[str, Any], float]], sort: str) -> list[str]:
+    if sort not in SORT_KEYS:
+        raise ValueError(f"top: --sort must be one of {', '.join(SORT_KEYS)}, got {sort!r}")
+    if sort == "name":
+        return sorted(cars)
+
+    def key(name: str) -> tuple[float, str]:
+        doc = cars[name][0]
+        if sort == "latency":
+            lat = doc.get("latency_p99_ms")
+            return (-lat if isinstance(lat, int | float) else math.inf, name)  # slowest first, unknown last
+        return (-_oldest_age(doc) if math.isfinite(_oldest_age(doc)) else math.inf, name)
+
+    return sorted(cars, key=key)
+
+
 def render_fleet(
-    cars: Mapping[str, tuple[Mapping[str, Any], float]], now: float, *, gone_after_s: float = 3.0, width: int = 120
+    cars: Mapping[str, tuple[Mapping[str, Any], float]],
+    now: float,
+    *,
+    gone_after_s: float = 3.0,
+    width: int = 120,
+    sort: str = "name",
+    stale_ms: float = 250.0,
+    parts: bool = True,
 ) -> str:
-    """The ``top`` screen as text: a header, one row per car (sorted by name) and its part times beneath."""
-    live = sum(1 for _, t in cars.values() if now - t <= gone_after_s)
-    lines = [f"asyncdonkey top - {len(cars)} car{'s' if len(cars) != 1 else ''} seen, {live} live"]
+    """The ``top`` screen as text: a header, one row per car (ordered by ``sort``: ``name``, ``latency``
+    slowest first, ``age`` oldest first) and, with ``parts``, its part times beneath."""
+    states = {
+        name: car_state(doc, now - t, gone_after_s=gone_after_s, stale_ms=stale_ms) for name, (doc, t) in cars.items()
+    }
+    counts = {s: sum(1 for v in states.values() if v == s) for s in ("live", "STALE", "SILENT")}
+    lines = [
+        f"asyncdonkey top - {len(cars)} car{'s' if len(cars) != 1 else ''} seen, {counts['live']} live,"
+        f" {counts['STALE']} stale, {counts['SILENT']} silent (sorted by {sort})"
+    ]
     head = (
-        f"{'CAR':<16} {'HZ':>6} {'LATE p99':>9} {'OVR':>4} {'MODE':<11} {'REC':>6} {'RTT ms':>7} {'SEEN':>5}  AGES ms"
+        f"{'CAR':<16} {'STATE':<6} {'HZ':>6} {'LAT p99':>8} {'LATE p99':>9} {'OVR':>4} {'MODE':<11} {'REC':>6}"
+        f" {'RTT ms':>7} {'SEEN':>5}  AGES ms"
     )
     lines.append(head)
-    for name in sorted(cars):
+    for name in _order(cars, sort):
         doc, t = cars[name]
         seen = now - t
         ages = doc.get("ages_ms") or {}
         age_text = " ".join(f"{k}={_ms(v, '{:.0f}')}" for k, v in ages.items())
-        state = f"{seen:4.1f}s" if seen <= gone_after_s else " gone"
         row = (
-            f"{name[-16:]:<16} {_ms(doc.get('hz'), '{:6.1f}'):>6} {_ms(doc.get('lateness_p99_ms')):>9}"
+            f"{name[-16:]:<16} {states[name]:<6} {_ms(doc.get('hz'), '{:6.1f}'):>6}"
+            f" {_ms(doc.get('latency_p99_ms'), '{:.1f}'):>8} {_ms(doc.get('lateness_p99_ms')):>9}"
             f" {doc.get('overruns', 0):>4} {str(doc.get('mode') or '-')[:11]:<11}"
             f" {_ms(doc.get('records'), '{:.0f}'):>6}"
-            f" {_ms(doc.get('rtt_ms')):>7} {state:>5}  {age_text}"
+            f" {_ms(doc.get('rtt_ms')):>7} {min(seen, 999.9):4.1f}s  {age_text}"
         )
         lines.append(row[:width])
-        parts = doc.get("parts") or {}
-        if parts:
-            slow = sorted(parts.items(), key=lambda kv: -kv[1])
+        part_times = doc.get("parts") or {}
+        if parts and part_times:
+            slow = sorted(part_times.items(), key=lambda kv: -kv[1])
             text = "  ".join(f"{k} {v:.2f}" for k, v in slow)
             lines.append(("    parts ms: " + text)[:width])
     if not cars:
@@ -198,7 +259,7 @@ def render_fleet(
 
 def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic) -> int:
     """``asyncdonkey top``: redraw every ``--every`` seconds until Ctrl-C, or print once after ``--once`` s."""
-    import zenoh
+    zenoh = require("zenoh", "zenoh", "asyncdonkey top")
 
     out = stream or sys.stdout
     cfg = zenoh_config(
@@ -213,13 +274,20 @@ def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], flo
     watcher = FleetWatcher(session, args.key)
     tty = out.isatty()
     try:
+        view = {
+            "sort": getattr(args, "sort", "name"),
+            "stale_ms": getattr(args, "stale_ms", 250.0),
+            "parts": not getattr(args, "no_parts", False),
+        }
         if args.once is not None:
             time.sleep(args.once)
-            out.write(render_fleet(watcher.snapshot(), clock()) + "\n")
+            out.write(render_fleet(watcher.snapshot(), clock(), **view) + "\n")
             return 0
         while True:
             width = shutil.get_terminal_size((120, 24)).columns
-            screen = render_fleet(watcher.snapshot(), clock(), gone_after_s=3 * max(args.every, 0.5), width=width)
+            screen = render_fleet(
+                watcher.snapshot(), clock(), gone_after_s=3 * max(args.every, 0.5), width=width, **view
+            )
             out.write(("\x1b[H\x1b[2J" if tty else "") + screen + "\n")
             out.flush()
             time.sleep(args.every)

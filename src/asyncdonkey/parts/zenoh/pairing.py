@@ -20,6 +20,22 @@ written here close that:
 
 The CA's private key is written to ``<out>/ca/`` and is needed only to issue more certificates: keep it on
 neither machine. Private keys are written with mode 0600.
+
+**A fleet on one pilot server** (:func:`make_fleet`, ``asyncdonkey zenoh-pair --fleet``): one CA, a certificate
+per car and one for the server. The server listens (mutual TLS) in router mode and every car connects to it,
+so the server is each car's only neighbour: the cars and views are Zenoh *clients* (a client talks to its
+router only, and a router forwards what its clients subscribe to; peers joined to a router do not get each
+other's data through it). Two layers of rules:
+
+* each car's own rules are the single car's above with the server as its pilot: command keys only from
+  ``CN=<server>``;
+* the server's rules, by certificate, default deny: car ``X`` may put, delete and subscribe only under
+  ``cars/X/**`` and receives only ``cars/X/**``, so no car can command, or watch, another through the
+  server; a fleet view (``--view``) may subscribe to everything and put nothing.
+
+**Nothing is overwritten by accident.** A pairing replaces the CA: every certificate issued before (a fleet
+view's, a car's) stops being accepted. :func:`make_pair` and :func:`make_fleet` refuse (:class:`PairExists`,
+naming the files) to write over files that exist unless given ``force=True``.
 """
 
 from __future__ import annotations
@@ -32,7 +48,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["COMMAND_CHANNELS", "DEFAULT_COMMANDS", "PILOT_COMMAND", "PairFiles", "car_acl", "make_pair"]
+__all__ = [
+    "COMMAND_CHANNELS",
+    "DEFAULT_COMMANDS",
+    "PILOT_COMMAND",
+    "FleetFiles",
+    "PairExists",
+    "PairFiles",
+    "car_acl",
+    "make_fleet",
+    "make_pair",
+    "server_acl",
+]
 
 #: the key of the remote pilot's command: angle and throttle in one sample (``ZenohPublisher(..., group=)``)
 PILOT_COMMAND = "pilot/command"
@@ -53,6 +80,34 @@ COMMAND_CHANNELS = frozenset(
 )
 #: the keys the paired pilot may put by default: the one-sample command, and the two channels it replaces
 DEFAULT_COMMANDS = (PILOT_COMMAND, "pilot/angle", "pilot/throttle")
+
+
+class PairExists(ValueError):
+    """A pairing would write over existing files (the message names them): a new CA would silently cut off
+    every identity issued by the old one."""
+
+    def __init__(self, paths: Sequence[Path]) -> None:
+        shown = ", ".join(str(p) for p in paths[:6]) + (f" and {len(paths) - 6} more" if len(paths) > 6 else "")
+        super().__init__(
+            f"zenoh-pair: refusing to overwrite {len(paths)} existing file{'s' if len(paths) != 1 else ''}: {shown}."
+            " A new pairing makes a new CA, and every certificate issued before (cars, views) stops being"
+            " accepted. Write elsewhere, or pass --force (force=True) to replace them."
+        )
+        self.paths = list(paths)
+
+
+def _refuse_overwrite(paths: Sequence[Path], force: bool) -> None:
+    existing = [p for p in paths if p.exists()]
+    if existing and not force:
+        raise PairExists(existing)
+
+
+def _check_names(names: Sequence[str], what: str) -> None:
+    for name in names:
+        if not name or not all(c.isalnum() or c in "-_." for c in name):
+            raise ValueError(f"zenoh-pair: names are letters, digits, '-', '_' or '.', got {name!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"zenoh-pair: {what} names must differ, got {list(names)}")
 
 
 @dataclass
@@ -122,40 +177,33 @@ def make_pair(
     car_dir: str | Path | None = None,
     pilot_dir: str | Path | None = None,
     days: int = 825,
+    force: bool = False,
 ) -> PairFiles:
     """Write a CA, the car's and the pilot's certificates and Zenoh configs (and one per fleet ``views``).
 
     ``car_hosts``: the names and addresses the pilot will reach the car by (put in the car certificate's
     subject alternative names; the first is the pilot's connect endpoint). ``car_dir``/``pilot_dir``: where
     each side's folder will live on its machine (the configs name the certificate files by absolute path);
-    default: where they are written.
+    default: where they are written. ``force``: write over existing files (otherwise :class:`PairExists`).
     """
-    from cryptography.hazmat.primitives import serialization
-
     if not car_hosts:
         raise ValueError("zenoh-pair: give at least one host name or address the pilot reaches the car by")
-    names = [car, pilot, *views]
-    for name in names:
-        if not name or not all(c.isalnum() or c in "-_." for c in name):
-            raise ValueError(f"zenoh-pair: names are letters, digits, '-', '_' or '.', got {name!r}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"zenoh-pair: car, pilot and view names must differ, got {names}")
+    _check_names([car, pilot, *views], "car, pilot and view")
     prefix = (prefix or f"cars/{car}").strip("/")
     out = Path(out).resolve()
     dirs = {"ca": out / "ca", "car": out / "car", "pilot": out / "pilot"}
+    _refuse_overwrite(
+        [
+            *_ca_paths(dirs["ca"]),
+            *_identity_paths(dirs["car"], car, "car.json5"),
+            *_identity_paths(dirs["pilot"], pilot, "pilot.json5"),
+            *(p for view in views for p in _identity_paths(out / view, view, f"{view}.json5")),
+        ],
+        force,
+    )
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)
-    ca_key, ca_cert = _ca(f"asyncdonkey pair {car}/{pilot}", days)
-    _write_key(dirs["ca"] / "ca-key.pem", ca_key)
-    pem = ca_cert.public_bytes(serialization.Encoding.PEM)
-    (dirs["ca"] / "ca.pem").write_bytes(pem)
-
-    def issue(role_dir: Path, cn: str, sans: Sequence[str]) -> None:
-        key, cert = _leaf(ca_key, ca_cert, cn, sans, days)
-        _write_key(role_dir / f"{cn}-key.pem", key)
-        (role_dir / f"{cn}-cert.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-        (role_dir / "ca.pem").write_bytes(pem)
-
+    issue = _Issuer(dirs["ca"], f"asyncdonkey pair {car}/{pilot}", days)
     issue(dirs["car"], car, car_hosts)
     issue(dirs["pilot"], pilot, [pilot])
     at_car = Path(car_dir) if car_dir else dirs["car"]
@@ -187,7 +235,6 @@ def make_pair(
     )
     for view in views:
         d = out / view
-        d.mkdir(parents=True, exist_ok=True)
         issue(d, view, [view])
         cfg = d / f"{view}.json5"
         cfg.write_text(
@@ -199,9 +246,214 @@ def make_pair(
     return files
 
 
-def _connector(cert_dir: Path, cn: str, host: str, port: int) -> dict:
+class _Issuer:
+    """A new CA written to ``ca_dir`` (``ca-key.pem`` 0600, ``ca.pem``), and ``issue(dir, cn, sans)``: a key and
+    certificate for ``cn`` in ``dir``, with the CA's certificate beside them."""
+
+    def __init__(self, ca_dir: Path, name: str, days: int) -> None:
+        from cryptography.hazmat.primitives import serialization
+
+        self.days = days
+        self.key, self.cert = _ca(name, days)
+        _write_key(ca_dir / "ca-key.pem", self.key)
+        self.pem = self.cert.public_bytes(serialization.Encoding.PEM)
+        (ca_dir / "ca.pem").write_bytes(self.pem)
+
+    def __call__(self, role_dir: Path, cn: str, sans: Sequence[str]) -> None:
+        from cryptography.hazmat.primitives import serialization
+
+        role_dir.mkdir(parents=True, exist_ok=True)
+        key, cert = _leaf(self.key, self.cert, cn, sans, self.days)
+        _write_key(role_dir / f"{cn}-key.pem", key)
+        (role_dir / f"{cn}-cert.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        (role_dir / "ca.pem").write_bytes(self.pem)
+
+
+def _ca_paths(ca_dir: Path) -> list[Path]:
+    return [ca_dir / "ca-key.pem", ca_dir / "ca.pem"]
+
+
+def _identity_paths(role_dir: Path, cn: str, config: str) -> list[Path]:
+    return [role_dir / f"{cn}-key.pem", role_dir / f"{cn}-cert.pem", role_dir / "ca.pem", role_dir / config]
+
+
+@dataclass
+class FleetFiles:
+    """What :func:`make_fleet` wrote: the server's config and directory, each car's, each view's, the CA key."""
+
+    server_config: Path
+    server_dir: Path
+    car_configs: dict[str, Path]
+    car_dirs: dict[str, Path]
+    ca_key: Path
+    view_configs: dict[str, Path] = field(default_factory=dict)
+
+
+def server_acl(cars: Sequence[str], views: Sequence[str] = (), prefix: str = "cars/{car}") -> dict:
+    """The pilot server's ``access_control`` section (it routes for the fleet; see the module docstring).
+
+    Per car ``X`` (certificate ``CN=X``): put, delete and subscribe only under ``cars/X/**``, receive only
+    ``cars/X/**``. Views: subscribe to anything, receive anything, put nothing. Every session may learn of the
+    others' subscriptions (``declare_subscriber`` out), which carries no data: that is how a car learns the
+    server wants its frames.
+    """
+    rules: list[dict] = []
+    subjects: list[dict] = []
+    policies: list[dict] = []
+    for car in cars:
+        keys = [f"{prefix.format(car=car).strip('/')}/**"]
+        rules.append(
+            {
+                "id": f"{car}-in",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put", "delete", "declare_subscriber"],
+                "key_exprs": keys,
+            }
+        )
+        rules.append(
+            {
+                "id": f"{car}-out",
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["put", "delete"],
+                "key_exprs": keys,
+            }
+        )
+        subjects.append({"id": f"car-{car}", "cert_common_names": [car]})
+        policies.append({"rules": [f"{car}-in", f"{car}-out"], "subjects": [f"car-{car}"]})
+    rules.append(
+        {
+            "id": "declarations-out",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["declare_subscriber"],
+            "key_exprs": ["**"],
+        }
+    )
+    subjects.append({"id": "authenticated"})
+    policies.append({"rules": ["declarations-out"], "subjects": ["authenticated"]})
+    if views:
+        # a view receives everything (egress puts to it) and may subscribe (ingress declarations); its own puts
+        # are ingress puts, and no rule allows them
+        rules.append(
+            {
+                "id": "views-read",
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["put", "delete"],
+                "key_exprs": ["**"],
+            }
+        )
+        rules.append(
+            {
+                "id": "views-subscribe",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["declare_subscriber"],
+                "key_exprs": ["**"],
+            }
+        )
+        subjects.append({"id": "views", "cert_common_names": list(views)})
+        policies.append({"rules": ["views-read", "views-subscribe"], "subjects": ["views"]})
     return {
-        "mode": "peer",
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def make_fleet(
+    out: str | Path,
+    *,
+    cars: Sequence[str],
+    server: str,
+    server_hosts: Sequence[str] = ("localhost",),
+    port: int = 7447,
+    listen_host: str = "0.0.0.0",
+    views: Sequence[str] = (),
+    commands: Sequence[str] = DEFAULT_COMMANDS,
+    days: int = 825,
+    force: bool = False,
+) -> FleetFiles:
+    """Write one CA, the pilot server's certificate and config, and one certificate and config per car (and
+    per fleet view): see the module docstring. Cars and views connect to the server at ``server_hosts[0]``
+    (all of ``server_hosts`` go into its certificate); the server listens on ``listen_host:port``.
+    ``force``: write over existing files (otherwise :class:`PairExists`).
+    """
+    cars = list(cars)
+    if not cars:
+        raise ValueError("zenoh-pair --fleet: name at least one car (--cars car1 car2 ...)")
+    if not server_hosts:
+        raise ValueError("zenoh-pair --fleet: give at least one host name or address the cars reach the server by")
+    _check_names([*cars, server, *views], "car, server and view")
+    out = Path(out).resolve()
+    ca_dir, server_dir = out / "ca", out / "server"
+    _refuse_overwrite(
+        [
+            *_ca_paths(ca_dir),
+            *_identity_paths(server_dir, server, "server.json5"),
+            *(p for car in cars for p in _identity_paths(out / car, car, "car.json5")),
+            *(p for view in views for p in _identity_paths(out / view, view, f"{view}.json5")),
+        ],
+        force,
+    )
+    ca_dir.mkdir(parents=True, exist_ok=True)
+    issue = _Issuer(ca_dir, f"asyncdonkey fleet {server}", days)
+    issue(server_dir, server, server_hosts)
+    host = server_hosts[0] if ":" not in server_hosts[0] else f"[{server_hosts[0]}]"
+    listen = listen_host if ":" not in listen_host else f"[{listen_host}]"
+    server_cfg = {
+        "mode": "router",  # it forwards each car's keys between that car, itself and the fleet views
+        "listen": {"endpoints": [f"tls/{listen}:{port}"]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": {"tls": _tls(server_dir, server, listen_side=True)}},
+        "access_control": server_acl(cars, views),
+    }
+    files = FleetFiles(
+        server_config=server_dir / "server.json5",
+        server_dir=server_dir,
+        car_configs={},
+        car_dirs={},
+        ca_key=ca_dir / "ca-key.pem",
+    )
+    files.server_config.write_text(
+        f"// written by asyncdonkey zenoh-pair --fleet: pilot server {server!r} for cars {', '.join(cars)}\n"
+        + json.dumps(server_cfg, indent=2)
+        + "\n"
+    )
+    for car in cars:
+        d = out / car
+        issue(d, car, [car])
+        cfg = _connector(d, car, host, port, mode="client")
+        cfg["access_control"] = car_acl(f"cars/{car}", server, commands)
+        path = d / "car.json5"
+        path.write_text(
+            f"// car {car!r} (keys cars/{car}/**): connects to pilot server {server!r}, takes commands only from it\n"
+            + json.dumps(cfg, indent=2)
+            + "\n"
+        )
+        files.car_configs[car] = path
+        files.car_dirs[car] = d
+    for view in views:
+        d = out / view
+        issue(d, view, [view])
+        path = d / f"{view}.json5"
+        path.write_text(
+            f"// fleet view {view!r}: reads every car through pilot server {server!r}, commands none\n"
+            + json.dumps(_connector(d, view, host, port, mode="client"), indent=2)
+            + "\n"
+        )
+        files.view_configs[view] = path
+    return files
+
+
+def _connector(cert_dir: Path, cn: str, host: str, port: int, mode: str = "peer") -> dict:
+    return {
+        "mode": mode,
         "listen": {"endpoints": []},  # reachable only through the connection it opens
         "connect": {
             "endpoints": [f"tls/{host}:{port}"],

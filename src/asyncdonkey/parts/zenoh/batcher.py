@@ -1,0 +1,130 @@
+"""Which frames a pilot server infers together: one short window, the newest frame per car, oldest arrival first.
+
+A pilot server (:mod:`.pilot_server`) takes camera frames from many cars and runs its model on several at once
+(one batched call costs far less than one call per frame). :class:`FrameBatcher` decides *which* frames go into
+a call; it does no I/O and reads no clock, so its rules are tested on the virtual clock without Zenoh:
+
+* **The window.** The first frame that arrives while nothing is pending opens a window of ``window_s``; when it
+  closes, everything pending is one batch. A lone car waits at most one window for its command; cars whose
+  frames arrive together share one call.
+* **Fairness: one frame per car per batch, the newest.** A car that sends faster than the server answers (or
+  floods) replaces its own pending frame (counted in ``replaced``); it never takes a second slot, so every
+  other car's frame is in the same batch as the flooder's newest. With ``max_batch`` smaller than the number
+  of waiting cars, the frames that arrived first go first and the rest are the next batch, whose window has
+  then already closed: no car waits more than one batch behind another.
+* **Order by arrival.** A batch lists its frames in the order they arrived (answers go out in that order).
+* **Too old to be worth it.** A frame older than the car's failsafe window (``max_age_s``, by its origin: the
+  car's capture time carried across the network) when its batch is taken is not inferred (counted in
+  ``too_old``): the command would reach a car that has already stopped on it. The car's own stale-command stop
+  decides, not the server.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["CarCounters", "Frame", "FrameBatcher"]
+
+
+@dataclass(slots=True)
+class Frame:
+    """One car's frame waiting for the model: ``origin`` is the capture time and ``arrival`` when the server got
+    it, both on the server's runtime clock."""
+
+    car: str
+    image: Any
+    origin: float
+    arrival: float
+
+
+@dataclass(slots=True)
+class CarCounters:
+    """Per car: frames offered, replaced by a newer one before a batch took them, dropped as ``too_old``, and
+    taken into a batch."""
+
+    frames: int = 0
+    replaced: int = 0
+    too_old: int = 0
+    batched: int = 0
+
+
+@dataclass
+class FrameBatcher:
+    """Pending frames (at most one per car) and the window that closes them into a batch (module docstring).
+
+    Args:
+        window_s: how long the first pending frame waits for others (``0``: a batch as soon as the server
+            looks).
+        max_age_s: a frame older than this (now minus its origin) when its batch is taken is not inferred.
+        max_batch: the most frames in one batch (``None``: no limit).
+    """
+
+    window_s: float
+    max_age_s: float
+    max_batch: int | None = None
+    cars: dict[str, CarCounters] = field(default_factory=dict)
+    batches: int = 0
+    _pending: dict[str, Frame] = field(default_factory=dict)
+    _opened: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.window_s >= 0 and math.isfinite(self.window_s)):
+            raise ValueError(f"FrameBatcher: window_s must be a finite number >= 0, got {self.window_s!r}")
+        if not (self.max_age_s > 0):
+            raise ValueError(f"FrameBatcher: max_age_s must be > 0, got {self.max_age_s!r}")
+        if self.max_batch is not None and self.max_batch < 1:
+            raise ValueError(f"FrameBatcher: max_batch must be >= 1 or None, got {self.max_batch!r}")
+
+    def offer(self, frame: Frame) -> None:
+        """A frame arrived: it replaces the car's pending one (which then counts as ``replaced``)."""
+        counters = self.cars.get(frame.car)
+        if counters is None:
+            counters = self.cars[frame.car] = CarCounters()
+        counters.frames += 1
+        if self._pending.pop(frame.car, None) is not None:
+            counters.replaced += 1
+        self._pending[frame.car] = frame  # re-inserted: the dict stays in arrival order
+        if self._opened is None:
+            self._opened = frame.arrival
+
+    @property
+    def pending(self) -> int:
+        """Frames waiting (one per car at most)."""
+        return len(self._pending)
+
+    def due(self) -> float | None:
+        """When the open window closes (``None``: nothing pending)."""
+        return None if self._opened is None else self._opened + self.window_s
+
+    def take(self, now: float) -> list[Frame]:
+        """The batch at ``now``: the pending frames in arrival order (at most ``max_batch``), the ones older than
+        ``max_age_s`` left out and counted. Frames left over stay pending, their window already closed."""
+        if not self._pending:
+            return []
+        frames = list(self._pending.values())
+        if self.max_batch is not None and len(frames) > self.max_batch:
+            frames, rest = frames[: self.max_batch], frames[self.max_batch :]
+        else:
+            rest = []
+        self._pending = {f.car: f for f in rest}
+        self._opened = min(f.arrival for f in rest) if rest else None
+        batch = []
+        for f in frames:
+            counters = self.cars[f.car]
+            if now - f.origin > self.max_age_s:
+                counters.too_old += 1
+                continue
+            counters.batched += 1
+            batch.append(f)
+        if batch:
+            self.batches += 1
+        return batch
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        """``{car: {"frames", "replaced", "too_old", "batched"}}``."""
+        return {
+            car: {"frames": c.frames, "replaced": c.replaced, "too_old": c.too_old, "batched": c.batched}
+            for car, c in self.cars.items()
+        }

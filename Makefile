@@ -20,7 +20,7 @@ $(VENV)/.base: pyproject.toml
 DONKEYCAR := "donkeycar==5.3.0; python_version < '3.12'" "donkeycar~=5.4.0; python_version >= '3.12'"
 
 $(VENV)/.test: $(VENV)/.base
-	$(PIP) install -e '.[test,donkeycar,mcap,tflite,quantize,zenoh]'
+	$(PIP) install -e '.[test,donkeycar-cli,mcap,tflite,quantize,zenoh]'
 	$(PIP) install --no-deps $(DONKEYCAR)
 	touch $@
 

@@ -17,6 +17,14 @@ goes through asyncdonkey's ``add()`` checks.
 
 The same substitution, with the plain :class:`~asyncdonkey.Vehicle`, runs Donkeycar's own test suite against
 asyncdonkey (``tests/donkeycar_suite``): :func:`donkeycar_replaced`.
+
+Two more things the command does for a car moved from Donkeycar:
+
+* ``.tflite`` pilots (``--type tflite_linear`` ...) get Donkeycar's ``TfLite`` interpreter made to take quantized
+  models and to find LiteRT (:mod:`.donkey_tflite`), so they drive without TensorFlow.
+* A module the car imports that is missing ends the command with one line saying which setting needs it and
+  what to do (:func:`missing_module_hint`): the default template's ``CAMERA_TYPE = "PICAM"`` without
+  ``picamera2`` is the first thing a car copied to a bench meets. Donkeycar prints a traceback.
 """
 
 from __future__ import annotations
@@ -28,14 +36,17 @@ import logging
 import os
 import runpy
 import sys
+import traceback
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..errors import PartError
+from ..extras import MissingExtra, install_command
 from ..loop import DriveReport, Vehicle
 from ..memory import Memory
+from .donkey_tflite import tflite_pilots_replaced
 
 __all__ = [
     "DonkeycarVehicle",
@@ -43,6 +54,7 @@ __all__ = [
     "add_donkey_parser",
     "donkey_main",
     "donkeycar_replaced",
+    "missing_module_hint",
     "run_manage_py",
 ]
 
@@ -192,7 +204,7 @@ def run_manage_py(path: str | Path, car_args: list[str], options: DriveOptions |
     sys.path.insert(0, str(car.parent))
     os.chdir(car.parent)
     try:
-        with donkeycar_replaced(vehicle_class, Memory):
+        with donkeycar_replaced(vehicle_class, Memory), tflite_pilots_replaced():
             runpy.run_path(str(car), run_name="__main__")
     finally:
         os.chdir(saved_cwd)
@@ -264,6 +276,88 @@ def donkey_main(args: argparse.Namespace) -> int:
     except PartError as exc:
         print(f"asyncdonkey: {exc}", file=sys.stderr)
         return 1
+    except ImportError as exc:
+        hint = missing_module_hint(exc)
+        if hint is None:
+            raise
+        logger.debug("the car's import that failed", exc_info=exc)
+        print(f"asyncdonkey: {car.name}: {hint}", file=sys.stderr)
+        return 1
     if not options.reports:
         logger.info("asyncdonkey: %s ran without driving (it never called Vehicle.start)", car.name)
     return 0
+
+
+# -- what a missing module means -----------------------------------------------------------------------------
+_CAMERA_HINT = (
+    'the camera CAMERA_TYPE = "{camera}" needs the {module} module, which this Python cannot import: '
+    'for a bench run without the camera set CAMERA_TYPE = "MOCK" in myconfig.py; on the Raspberry Pi, '
+    "sudo apt install python3-picamera2 and use a venv made with --system-site-packages "
+    "(python3 -m venv --system-site-packages ~/env)"
+)
+_PCA9685_HINT = (
+    'the drivetrain DRIVE_TRAIN_TYPE = "{drivetrain}" needs the {module} module, which is not installed: '
+    'for a bench run set DRIVE_TRAIN_TYPE = "MOCK" in myconfig.py; on the car, pip install Adafruit_PCA9685'
+)
+_TENSORFLOW_HINT = (
+    "the pilot needs {module}, which is not installed: pip install tensorflow, or drive a .tflite model without "
+    "it (--type tflite_linear, docs/donkeycar.md)"
+)
+#: a missing module the car's own settings decide on -> the line that says so
+_SETTING_HINTS = {
+    "picamera2": _CAMERA_HINT,
+    "libcamera": _CAMERA_HINT,
+    "Adafruit_PCA9685": _PCA9685_HINT,
+    "tensorflow": _TENSORFLOW_HINT,
+    "keras": _TENSORFLOW_HINT,
+}
+#: modules Donkeycar's command and templates import, provided by the donkeycar-cli extra
+_EXTRA_MODULES = frozenset(
+    {"progress", "docopt", "tornado", "requests", "pyfiglet", "PIL", "albumentations", "simple_pid", "prettytable"}
+)
+
+
+def missing_module_hint(exc: ImportError) -> str | None:
+    """One line for an import that failed in a Donkeycar car: the setting that needs the module and the ways
+    out, the extra to install, or where the car imports it. ``None`` when ``exc`` is not a missing module.
+
+    The car's settings are read from the failing code's own ``cfg`` (the templates pass it down), so the line
+    names the value the car was configured with.
+    """
+    if isinstance(exc, MissingExtra):
+        return str(exc)
+    module = (exc.name or "").split(".")[0]
+    if not isinstance(exc, ModuleNotFoundError) or not module:
+        return None
+    cfg = _car_config(exc)
+    template = _SETTING_HINTS.get(module)
+    if template is not None:
+        return template.format(
+            module=module,
+            camera=getattr(cfg, "CAMERA_TYPE", "PICAM"),
+            drivetrain=getattr(cfg, "DRIVE_TRAIN_TYPE", "PWM_STEERING_THROTTLE"),
+        )
+    if module in _EXTRA_MODULES:
+        return f"Donkeycar's code needs {module}, which is not installed: {install_command('donkeycar-cli')}"
+    where = _importer(exc)
+    return f"{where} imports {module}, which is not installed in this environment ({sys.executable})"
+
+
+def _car_config(exc: BaseException) -> Any:
+    """The ``cfg`` the failing code had (the innermost frame that has one), or ``None``."""
+    found = None
+    for frame, _ in traceback.walk_tb(exc.__traceback__):
+        cfg = frame.f_locals.get("cfg")
+        if cfg is not None and hasattr(cfg, "CAMERA_TYPE"):
+            found = cfg
+    return found
+
+
+def _importer(exc: BaseException) -> str:
+    """``file:line`` of the innermost frame outside the import machinery: the import statement that failed."""
+    where = "the car"
+    for frame, line in traceback.walk_tb(exc.__traceback__):
+        name = frame.f_code.co_filename
+        if not name.startswith("<frozen"):
+            where = f"{name}:{line}"
+    return where

@@ -13,7 +13,7 @@
    driver seed), as the R² of its angle against always steering the mean angle, and a closed-loop drive: the
    pilot must complete laps without leaving the road. The drive is the test that counts: a pilot may steer
    its own way (a low or even negative R²) and still drive clean laps; its score is the share of the distance
-   it drove on the road.
+   it drove before it first left the road.
 4. Export: the features and the linear layer as one ONNX graph taking Donkeycar's input (a 120x160x3 image in
    [0, 1]), checked against numpy with onnxruntime.
 
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         result = drive(sim, pilot, args.check_seconds)
         print(
             f"closed loop, {result.seconds:.0f} s: {result.laps} laps, {result.distance:.1f} m, "
-            f"on the road for {result.on_track_fraction:.0%} of it; "
+            f"clean {result.clean_fraction:.0%} (the share driven before first leaving the road); "
             f"|cte| mean {result.mean_abs_cte:.3f} m max {result.max_abs_cte:.3f} m, "
             f"off track {result.off_track_frames} frames"
         )

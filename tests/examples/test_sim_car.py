@@ -155,3 +155,21 @@ async def test_an_80ms_pilot_slows_the_in_order_loop_but_not_the_frame_started_o
             assert lat["50%"] >= 80.0 and lat["max"] <= 80.0 + 50.0 + 1e-6
     assert rates["in-order"][0] == pytest.approx(12.5, rel=0.02) and rates["in-order"][1] > 100
     assert rates["frame"] == (pytest.approx(20.0), 0)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_quiet_drops_the_live_line_but_keeps_the_summary():
+    """``--quiet`` (``live_status=False``) silences the line redrawn while driving, not the drive's result."""
+    texts = {}
+    for live in (True, False):
+        status = io.StringIO()
+        v, _ = car_py.make_car(pilot="user", seconds=11.0, status=status, live_status=live)
+        report = await v.run(rate_hz=20, max_loop_count=10_000)
+        assert report.stop_reason == "time limit reached (11 s)"
+        texts[live] = status.getvalue().splitlines()
+    live_lines = [line for line in texts[True] if "lateness p99" in line]
+    assert len(live_lines) == 2  # not a terminal: a line every 5 s
+    assert not any("lateness p99" in line for line in texts[False])
+    assert texts[False] == [texts[True][-1]]  # the summary, the same with and without the live line
+    assert texts[False][0].startswith("drove 0 laps")

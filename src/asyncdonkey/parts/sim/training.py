@@ -221,7 +221,7 @@ def evaluate(pilot: LinearPilot, samples: Samples, baseline_angle: float) -> dic
     better than always steering ``baseline_angle``, negative when worse. It measures imitation of the driver who
     labelled ``samples`` on those frames, not driving: a pilot that steers its own way can drive clean laps and
     still score below 0 (it then disagrees with the driver more than a constant angle does), so whether a pilot
-    drives is :func:`drive`'s :attr:`DriveResult.on_track_fraction`, not this figure.
+    drives is :func:`drive`'s :attr:`DriveResult.clean_fraction`, not this figure.
     """
     pred = pilot.predict(samples.features)
     pa = np.clip(pred[:, 0], -1, 1)
@@ -241,9 +241,11 @@ def evaluate(pilot: LinearPilot, samples: Samples, baseline_angle: float) -> dic
 class DriveResult:
     """A closed-loop drive: laps completed, how far off centre, how often it left the road.
 
-    ``on_track_distance`` is the distance along the road covered in steps that start and end on the road (the
-    steps off it, and the one that respawns the car, add nothing); :attr:`on_track_fraction` is that share of
-    ``distance``: the drive's score, 1.0 for a drive that never left the road.
+    ``forward_distance`` is the distance covered forward along the road, step by step (``distance`` is the net
+    progress, which a car turning circles keeps near 0); ``clean_distance`` is the part of it covered before
+    the car first left the road. :attr:`clean_fraction`, their ratio, is the drive's score: 1.0 for a drive
+    that never left the road, 0.5 for one that left it halfway, near 0 for one that left it at once and went
+    on moving (a car circling on the grass and back over the road gains no credit once it has left it).
     """
 
     seconds: float
@@ -253,14 +255,16 @@ class DriveResult:
     max_abs_cte: float
     off_track_frames: int
     respawns: int
-    on_track_distance: float = 0.0
+    forward_distance: float = 0.0
+    clean_distance: float = 0.0
 
     @property
-    def on_track_fraction(self) -> float:
-        """Share of the distance driven on the road, in [0, 1] (0 for a car that did not move forward)."""
-        if self.distance <= 0:
+    def clean_fraction(self) -> float:
+        """Share of the forward distance driven before first leaving the road, in [0, 1] (0 for a car that never
+        moved forward)."""
+        if self.forward_distance <= 0:
             return 0.0
-        return min(1.0, max(0.0, self.on_track_distance / self.distance))
+        return self.clean_distance / self.forward_distance
 
     @property
     def clean(self) -> bool:
@@ -277,16 +281,20 @@ def drive(
     start = sim.progress
     ctes = np.empty(n)
     off = 0
-    on_track = 0.0
+    forward = clean = 0.0
+    left_road = abs(sim.cte) > sim.track.half_width
     respawns0 = sim.respawns
     for i in range(n):
         a, t = pilot(sim.render())
-        before, was_on = sim.progress, abs(sim.cte) <= sim.track.half_width
+        before = sim.progress
         tel = sim.step(dt, a, t if throttle is None else throttle)
         ctes[i] = abs(tel.cte)
         off += tel.off_track
-        if was_on and not tel.off_track:  # on the road at both ends of the step (a respawn starts off it)
-            on_track += sim.progress - before
+        left_road = left_road or tel.off_track
+        gained = max(0.0, sim.progress - before)
+        forward += gained
+        if not left_road:
+            clean += gained
     return DriveResult(
         seconds=n * dt,
         laps=sim.telemetry().laps,
@@ -295,7 +303,8 @@ def drive(
         max_abs_cte=float(ctes.max()) if n else 0.0,
         off_track_frames=int(off),
         respawns=sim.respawns - respawns0,
-        on_track_distance=on_track,
+        forward_distance=forward,
+        clean_distance=clean,
     )
 
 

@@ -163,3 +163,19 @@ def test_a_missing_picamera2_is_one_line_naming_the_apt_package(monkeypatch):
 def test_depth_other_than_rgb_is_refused(rig):
     with pytest.raises(ValueError, match="IMAGE_DEPTH"):
         camera(rig, image_d=1)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_subscribers_get_each_new_frame_with_its_exposure_origin(rig):
+    cam = camera(rig)
+    got = []
+    unsubscribe = cam.subscribe(lambda image, origin: got.append((frame_number(image), origin)))
+    v = Vehicle()
+    v.add(cam, outputs=cam.outputs)
+    await v.run(rate_hz=20, max_loop_count=10)
+    unsubscribe()
+    numbers = [n for n, _ in got]
+    assert len(got) >= 9 and numbers == list(range(numbers[0], numbers[0] + len(got)))  # each frame once, in order
+    assert all(b - a == pytest.approx(0.05) for (_, a), (_, b) in itertools.pairwise(got))  # 20 fps exposures
+    assert got[-1][1] == cam.sample.value.origin

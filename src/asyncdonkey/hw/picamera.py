@@ -30,17 +30,17 @@ clocks, needs no assumption that boot time equals monotonic time, and makes a fr
 light it recorded (exposure plus readout plus ISP plus whatever waited), not the time since it was read.
 
 A capture that gets no frame within ``timeout_s`` raises :class:`~asyncdonkey.hw.camera.CameraError` naming the
-camera. After a timeout the driver calls ``cancel_all_and_flush()``: picamera2 keeps a timed-out capture's job
-queued, and that job would take the next frame and hold its buffer for ever. The driver does not reopen a camera
-that stopped: a CSI camera whose ribbon came loose does not come back without a reboot; the part's frames grow
-old instead, which the car's stale-command failsafe acts on.
+camera (counted in ``timeouts``; the part's poller logs it at most once a second). After a timeout the driver
+calls ``cancel_all_and_flush()``: picamera2 keeps a timed-out capture's job queued, and that job would take the
+next frame and hold its buffer for ever. The driver does not reopen a camera that stopped: a CSI camera whose
+ribbon came loose does not come back without a reboot; the part's frames grow old instead, which the car's
+stale-command failsafe acts on.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import importlib
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -49,7 +49,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..ratelimit import LogThrottle
 from .camera import DEFAULT_IMAGE_H, DEFAULT_IMAGE_W, CameraError
 
 __all__ = [
@@ -61,8 +60,6 @@ __all__ = [
     "boottime_ns",
     "import_picamera2",
 ]
-
-logger = logging.getLogger(__name__)
 
 #: The Debian / Raspberry Pi OS package that provides picamera2 with its libcamera bindings.
 APT_PACKAGE = "python3-picamera2"
@@ -195,7 +192,6 @@ class PiCameraDriver:
         self.frames = 0  # frames captured
         self.timeouts = 0  # captures that got no frame in time
         self.last_error: str | None = None
-        self._log = LogThrottle(1.0)
         self._read_lock = threading.Lock()
         self._closed = False
         module = picamera2 if picamera2 is not None else import_picamera2()
@@ -277,11 +273,6 @@ class PiCameraDriver:
         cancel = getattr(cam, "cancel_all_and_flush", None)
         if cancel is not None:
             cancel()
-        more = self._log.ready("timeout", time.monotonic())
-        if more is not None:
-            logger.warning(
-                "%s: no frame within %g s (%d timeouts so far)%s", self.name, self.timeout_s, self.timeouts, more
-            )
 
     def first_frame(self, timeout_s: float) -> Frame:
         """Capture until a frame comes, for at most ``timeout_s`` (a camera starting up may take a few frames)."""

@@ -100,7 +100,7 @@ class PiCamera:
             clock=_runtime_clock(),
         )
         self.name = f"PiCamera({self.driver.name})"
-        self.poller: Poller[Frame] = Poller(self.driver.read, framerate, name=self.driver.name)
+        self.poller: Poller[Frame] = Poller(self._read, framerate, name=self.driver.name)
         try:
             first = self.driver.first_frame(float(warmup_timeout_s))
         except BaseException:
@@ -177,6 +177,17 @@ class PiCamera:
         origin = now() - (self.driver.sensor_clock_ns() - frame.sensor_ns) * 1e-9
         self.poller.latest.publish(frame._replace(origin=origin), origin)
         self._origin = origin
+
+    def _read(self) -> Frame:
+        """The poller's read. One that starts as the part shuts down (the poller's last, racing ``shutdown()``)
+        gives back the newest frame unchanged: nothing new, and no "camera closed" error to count or log."""
+        try:
+            return self.driver.read()
+        except CameraError:
+            sample = self.poller.latest.sample
+            if self.driver.closed and sample is not None:
+                return sample.value
+            raise
 
     def shutdown(self) -> None:
         self.poller.shutdown()

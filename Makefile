@@ -43,6 +43,9 @@ $(CHROMIUM):
 # need real time, a browser, Donkeycar, sockets or processes (the markers, docs/testing.md).
 FAST := not realtime and not browser and not donkeycar and not network and not subprocess
 
+# ARGS go to `asyncdonkey run`: its own options first, then the car's after a lone --, e.g.
+# make run ARGS="-- --seconds 120" or make run ARGS="--hz 50 -- --laps 3" (docs/simulator.md lists them).
+# Afterwards the commands are in the venv: .venv/bin/asyncdonkey, .venv/bin/python (docs/cli.md).
 run: $(VENV)/.base
 	$(VENV)/bin/asyncdonkey run examples/car.py $(ARGS)
 

@@ -1,8 +1,9 @@
 """Which frames a pilot server infers together: one short window, the newest frame per car, oldest arrival first.
 
-A pilot server (:mod:`.pilot_server`) takes camera frames from many cars and runs its model on several at once
-(one batched call costs far less than one call per frame). :class:`FrameBatcher` decides *which* frames go into
-a call; it does no I/O and reads no clock, so its rules are tested on the virtual clock without Zenoh:
+A pilot server (:mod:`.pilot_server`) takes camera frames from many cars and runs its model on several at once.
+:class:`FrameBatcher` decides *which* frames go into a call (it does no I/O and reads no clock);
+:class:`BatchLoop` runs the batches on the runtime clock. Neither touches the network, so both are tested on the
+virtual clock without Zenoh:
 
 * **The window.** The first frame that arrives while nothing is pending opens a window of ``window_s``; when it
   closes, everything pending is one batch. A lone car waits at most one window for its command; cars whose
@@ -21,11 +22,21 @@ a call; it does no I/O and reads no clock, so its rules are tested on the virtua
 
 from __future__ import annotations
 
+import asyncio
+import collections
+import concurrent.futures
+import inspect
+import logging
 import math
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["CarCounters", "Frame", "FrameBatcher"]
+from ...clock import get_clock
+
+__all__ = ["BatchLoop", "CarCounters", "Commands", "Frame", "FrameBatcher"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(slots=True)
@@ -128,3 +139,109 @@ class FrameBatcher:
             car: {"frames": c.frames, "replaced": c.replaced, "too_old": c.too_old, "batched": c.batched}
             for car, c in self.cars.items()
         }
+
+
+#: what a model gives for a batch: one ``(angle, throttle)`` per frame, or ``None`` (no command for that frame)
+Commands = Sequence[tuple[float, float] | None]
+
+
+class BatchLoop:
+    """The serving loop around a :class:`FrameBatcher`: wait for a frame, wait out its window, infer the batch,
+    answer each frame; again. No network here (the pilot server feeds it and sends the answers), so the timing
+    is tested on the virtual clock.
+
+    Args:
+        batcher: the rules (window, fairness, too old).
+        infer: frames → one command (or ``None``) per frame. A plain function runs in the loop's own worker
+            thread (a model call holds its thread for milliseconds: never the event loop's); a coroutine
+            function is awaited.
+        answer: ``answer(frame, command, now)`` for each frame with a command, in the batch's order, on the loop.
+
+    While a batch is being inferred, frames keep arriving (:meth:`offer`); the next batch is taken as soon as
+    the call returns if its window has closed by then.
+    """
+
+    def __init__(
+        self,
+        batcher: FrameBatcher,
+        infer: Callable[[Sequence[Any]], Commands | Awaitable[Commands]],
+        answer: Callable[[Frame, tuple[float, float], float], None],
+    ) -> None:
+        self.batcher = batcher
+        self.infer = infer
+        self.answer = answer
+        self.batch_sizes: collections.deque[int] = collections.deque(maxlen=10_000)
+        self.infer_s: collections.deque[float] = collections.deque(maxlen=10_000)
+        self.calls = 0
+        self.errors = 0
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._wake: asyncio.Event | None = None
+        self._stop: asyncio.Event | None = None
+        self._stopped = False
+
+    def offer(self, car: str, image: Any, origin: float) -> None:
+        """A frame arrived (on the loop's thread): pending until its batch."""
+        self.batcher.offer(Frame(car, image, origin, get_clock().now()))
+        if self._wake is not None:
+            self._wake.set()
+
+    async def serve(self) -> None:
+        """Batches until :meth:`stop`."""
+        clock = get_clock()
+        self._wake, self._stop = asyncio.Event(), asyncio.Event()
+        if self._stopped:
+            return
+        stopping = asyncio.ensure_future(self._stop.wait())
+        try:
+            while not self._stop.is_set():
+                due = self.batcher.due()
+                if due is None:
+                    self._wake.clear()
+                    waking = asyncio.ensure_future(self._wake.wait())
+                    await asyncio.wait([waking, stopping], return_when=asyncio.FIRST_COMPLETED)
+                    waking.cancel()
+                    continue
+                if clock.now() < due:
+                    await clock.sleep_until(due)
+                await self._serve_batch(self.batcher.take(clock.now()))
+        finally:
+            stopping.cancel()
+
+    async def _serve_batch(self, batch: list[Frame]) -> None:
+        if not batch:
+            return
+        clock = get_clock()
+        images = [f.image for f in batch]
+        t0 = clock.now()
+        try:
+            if inspect.iscoroutinefunction(self.infer):
+                result = await self.infer(images)
+            else:
+                if self._executor is None:
+                    self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pilot-server")
+                result = await asyncio.get_running_loop().run_in_executor(self._executor, self.infer, images)
+            if len(result) != len(batch):
+                raise ValueError(f"the model gave {len(result)} commands for {len(batch)} frames")
+        except Exception as exc:
+            self.errors += 1
+            logger.warning("pilot server: the model failed on a batch of %d (%s): no commands", len(batch), exc)
+            return
+        now = clock.now()
+        self.infer_s.append(now - t0)
+        self.batch_sizes.append(len(batch))
+        self.calls += 1
+        for frame, command in zip(batch, result, strict=True):
+            if command is not None:
+                self.answer(frame, command, now)
+
+    def stop(self) -> None:
+        """End :meth:`serve` (from the loop's thread; before it started: it returns at once)."""
+        self._stopped = True
+        if self._stop is not None:
+            self._stop.set()
+
+    def close(self) -> None:
+        """Stop the worker thread (waits for a call in progress)."""
+        ex, self._executor = self._executor, None
+        if ex is not None:
+            ex.shutdown(wait=True)

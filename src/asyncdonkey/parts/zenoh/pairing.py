@@ -23,9 +23,10 @@ neither machine. Private keys are written with mode 0600.
 
 **A fleet on one pilot server** (:func:`make_fleet`, ``asyncdonkey zenoh-pair --fleet``): one CA, a certificate
 per car and one for the server. The server listens (mutual TLS) in router mode and every car connects to it,
-so the server is each car's only neighbour: the cars and views are Zenoh *clients* (a client talks to its
-router only, and a router forwards what its clients subscribe to; peers joined to a router do not get each
-other's data through it). Two layers of rules:
+so the server is each car's only neighbour. A car is a Zenoh peer with no listener and the server as its only
+endpoint: it starts, and keeps retrying, while the server is away (it stops by its failsafe meanwhile). A view
+is a Zenoh client of the server (a client gets what its router forwards from every car; start it once the
+server is up). Two layers of rules:
 
 * each car's own rules are the single car's above with the server as its pilot: command keys only from
   ``CN=<server>``;
@@ -428,7 +429,7 @@ def make_fleet(
     for car in cars:
         d = out / car
         issue(d, car, [car])
-        cfg = _connector(d, car, host, port, mode="client")
+        cfg = _connector(d, car, host, port)  # a peer: it starts (and stops, failsafe) before the server is up
         cfg["access_control"] = car_acl(f"cars/{car}", server, commands)
         path = d / "car.json5"
         path.write_text(

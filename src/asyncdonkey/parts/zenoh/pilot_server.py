@@ -12,8 +12,8 @@ carried across the network, the round trip measured) and answers with a :class:`
 by *that car's frame*: the car's ``pilot/throttle@age`` is its own camera-to-command time, exactly as with
 ``examples/remote_pilot.py``. A car needs no change to move from its own remote pilot to a server.
 
-**Batching** (:class:`.FrameBatcher`): the first frame to arrive opens a window of ``window_s`` (5 ms by
-default); the newest frame of each car that arrived by then goes into one model call
+**Batching** (:class:`.FrameBatcher`, :class:`.BatchLoop`): the first frame to arrive opens a window of
+``window_s`` (5 ms by default); the newest frame of each car that arrived by then goes into one model call
 (:class:`.BatchPilot`), in arrival order; a frame older than ``max_age_s`` (the cars' failsafe window) is not
 inferred (``too_old``). The call runs in the server's own worker thread, so Zenoh's callbacks and the event
 loop keep taking frames meanwhile; those form the next batch as soon as the call returns.
@@ -32,14 +32,12 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import concurrent.futures
-import inspect
 import logging
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from ...clock import get_clock
-from .batcher import Frame, FrameBatcher
+from .batcher import BatchLoop, Frame, FrameBatcher
 from .link import ZenohLink, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
@@ -50,8 +48,6 @@ logger = logging.getLogger(__name__)
 
 CAMERA = "cam/image_array"
 COMMAND = ("pilot/angle", "pilot/throttle")
-#: what a model gives for a batch: one ``(angle, throttle)`` per frame, or ``None`` (no command for that car)
-Commands = Sequence[tuple[float, float] | None]
 
 
 class _Car:
@@ -107,9 +103,9 @@ class PilotServer:
             raise ValueError(f"PilotServer: give the car names as a list, got {cars!r}")
         if "{car}" not in prefix:
             raise ValueError(f"PilotServer: prefix must contain '{{car}}', got {prefix!r}")
-        self.infer: Callable[[Sequence[Any]], Commands | Awaitable[Commands]] = getattr(model, "infer", model)
         self.model = model
         self.batcher = FrameBatcher(window_s=window_s, max_age_s=max_age_s, max_batch=max_batch)
+        self.loop = BatchLoop(self.batcher, getattr(model, "infer", model), self._answer)
         self._owned = session is None
         if session is None:
             import zenoh
@@ -123,100 +119,61 @@ class PilotServer:
         except Exception:
             self.close()
             raise
-        self.batch_sizes: collections.deque[int] = collections.deque(maxlen=10_000)
-        self.infer_s: collections.deque[float] = collections.deque(maxlen=10_000)
-        self.calls = 0
-        self.errors = 0
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._wake: asyncio.Event | None = None
-        self._stop: asyncio.Event | None = None
-        self._unsubscribe: list[Callable[[], None]] = []
 
     # -- frames in (Zenoh's threads, handed to the loop) --------------------------------------------------
-    def offer(self, car: str, image: Any, origin: float) -> None:
-        """Take a frame on the loop thread (the subscribers' pushes call this through the loop)."""
-        now = get_clock().now()
-        self.batcher.offer(Frame(car, image, origin, now))
-        if self._wake is not None:
-            self._wake.set()
-
-    def _push(self, car: str) -> Callable[[Any, float], None]:
-        loop = self._loop
-        assert loop is not None
+    def _push(self, car: str, loop: asyncio.AbstractEventLoop) -> Callable[[Any, float], None]:
+        offer = self.loop.offer
 
         def push(image: Any, origin: float) -> None:
             try:
-                loop.call_soon_threadsafe(self.offer, car, image, origin)
-            except RuntimeError:  # the loop is closed: the server is going away
+                loop.call_soon_threadsafe(offer, car, image, origin)
+            except RuntimeError:  # the event loop is closed: the server is going away
                 pass
 
         return push
 
-    # -- the serving loop ----------------------------------------------------------------------------------
+    def _answer(self, frame: Frame, command: tuple[float, float], now: float) -> None:
+        """Send a car its command, aged by the frame it answers (its capture, carried across the network)."""
+        car = self.cars[frame.car]
+        age = max(0.0, now - frame.origin)
+        car.commands.run(command[0], command[1], age, age)
+        car.answered += 1
+
+    # -- serving -------------------------------------------------------------------------------------------
     async def serve(self) -> None:
         """Take frames, infer them in batches and answer each car, until :meth:`stop`."""
-        self._loop = asyncio.get_running_loop()
+        loop = asyncio.get_running_loop()
         clock = get_clock()
-        self._wake, self._stop = asyncio.Event(), asyncio.Event()
+        unsubscribe = []
         for car in self.cars.values():
             car.link.now = clock.now
-            self._unsubscribe.append(car.frames.subscribe(self._push(car.name)))
+            unsubscribe.append(car.frames.subscribe(self._push(car.name, loop)))
         pings = [asyncio.ensure_future(car.frames.update()) for car in self.cars.values()]
-        stopping = asyncio.ensure_future(self._stop.wait())
         try:
-            while not self._stop.is_set():
-                due = self.batcher.due()
-                if due is None:
-                    self._wake.clear()
-                    waking = asyncio.ensure_future(self._wake.wait())
-                    await asyncio.wait([waking, stopping], return_when=asyncio.FIRST_COMPLETED)
-                    waking.cancel()
-                    continue
-                if clock.now() < due:
-                    await clock.sleep_until(due)
-                await self._serve_batch(self.batcher.take(clock.now()))
+            await self.loop.serve()
         finally:
-            stopping.cancel()
             for task in pings:
                 task.cancel()
-            for unsubscribe in self._unsubscribe:
-                unsubscribe()
-            self._unsubscribe.clear()
-
-    async def _serve_batch(self, batch: list[Frame]) -> None:
-        if not batch:
-            return
-        clock = get_clock()
-        images = [f.image for f in batch]
-        t0 = clock.now()
-        try:
-            if inspect.iscoroutinefunction(self.infer):
-                result = await self.infer(images)
-            else:  # a model call holds its thread for milliseconds: never the loop's
-                if self._executor is None:
-                    self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pilot-server")
-                result = await asyncio.get_running_loop().run_in_executor(self._executor, self.infer, images)
-        except Exception as exc:
-            self.errors += 1
-            logger.warning("pilot server: the model failed on a batch of %d (%s): no commands", len(batch), exc)
-            return
-        self.infer_s.append(clock.now() - t0)
-        self.batch_sizes.append(len(batch))
-        self.calls += 1
-        now = clock.now()
-        for frame, command in zip(batch, result, strict=True):
-            if command is None:
-                continue
-            car = self.cars[frame.car]
-            age = max(0.0, now - frame.origin)
-            car.commands.run(command[0], command[1], age, age)
-            car.answered += 1
+            for off in unsubscribe:
+                off()
 
     def stop(self) -> None:
-        """End :meth:`serve` (from the loop's thread)."""
-        if self._stop is not None:
-            self._stop.set()
+        """End :meth:`serve` (from the event loop's thread)."""
+        self.loop.stop()
+
+    @property
+    def batch_sizes(self) -> collections.deque[int]:
+        """Frames per model call, recent calls."""
+        return self.loop.batch_sizes
+
+    @property
+    def infer_s(self) -> collections.deque[float]:
+        """Seconds per model call (or per batch of calls, one per frame for a model of batch 1), recent."""
+        return self.loop.infer_s
+
+    @property
+    def calls(self) -> int:
+        return self.loop.calls
 
     def counters(self) -> dict[str, dict[str, int]]:
         """Per car: the batcher's counters plus ``answered`` (commands sent) and ``refused`` (frames the channel
@@ -233,9 +190,7 @@ class PilotServer:
         it)."""
         for car in self.cars.values():
             car.close()
-        ex, self._executor = self._executor, None
-        if ex is not None:
-            ex.shutdown(wait=True)
+        self.loop.close()
         if self._owned:
             try:
                 self.session.close()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import re
 import shutil
+import socket
 import subprocess
 
 import aiohttp
@@ -117,7 +118,7 @@ def test_the_controller_prints_every_url_with_its_port_and_token_and_the_qr_code
     assert [u for u, _ in printed] == [
         f"http://192.168.1.20:8887/drive?token={TOKEN}",
         f"http://172.17.0.1:8887/drive?token={TOKEN}",
-        f"http://{__import__('socket').gethostname().split('.')[0]}.local:8887/drive?token={TOKEN}",
+        f"http://{socket.gethostname().split('.')[0]}.local:8887/drive?token={TOKEN}",
     ]
     assert "this computer only" in printed[1][1]
     qr = io.StringIO()

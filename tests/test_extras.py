@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from asyncdonkey.errors import AsyncdonkeyError
-from asyncdonkey.extras import MissingExtra, install_command, require
+from asyncdonkey.extras import EXTRA_OF_MODULE, MissingExtra, extra_for_module, install_command, require
 from asyncdonkey.testing import VirtualClockLoop
 
 from .examples.example_loader import EXAMPLES, load_example
@@ -98,6 +98,16 @@ def test_an_error_other_than_import_is_not_a_missing_extra(tmp_path, monkeypatch
         require("asyncdonkey_broken_mod", "x", "f")
 
 
+def test_the_module_map_names_the_extras_of_pyproject():
+    import tomllib
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert set(EXTRA_OF_MODULE.values()) <= set(extras)
+    assert extra_for_module("mcap.records") == "mcap"  # a submodule: its package's extra
+    assert extra_for_module("google.protobuf.descriptor_pb2") == "mcap"
+    assert extra_for_module("google") is None and extra_for_module("numpy") is None and extra_for_module(None) is None
+
+
 @pytest.mark.subprocess
 def test_the_helper_is_core_it_imports_no_parts_drivers_or_commands():
     code = (
@@ -166,6 +176,8 @@ TFLITE = "ai_edge_litert,tflite_runtime"
             ["run", CAR, "--", "--pilot", "remote", "--zenoh-listen", "tcp/127.0.0.1:7447"],
             "--pilot remote",
         ),
+        ("top", "zenoh", "zenoh", ["top", "--once", "0.1"], "asyncdonkey top"),
+        ("zenoh-pair", "cryptography", "zenoh", ["zenoh-pair", "{tmp}/pair"], "asyncdonkey zenoh-pair"),
         (
             "run .tflite pilot",
             TFLITE,
@@ -179,6 +191,17 @@ def test_each_command_prints_the_install_line_and_exits_2(recorded, tmp_path, na
     tub, mcap = recorded
     args = [str(a).format(tub=tub, mcap=mcap, tmp=tmp_path) for a in command]
     assert_missing_extra(run_hiding(hidden, *args), extra, says)
+
+
+@pytest.mark.subprocess
+def test_a_car_file_importing_an_extra_itself_gets_the_install_line(tmp_path):
+    """The last line of defence: an import that did not go through require() still names its extra."""
+    car = tmp_path / "zcar.py"
+    car.write_text("import zenoh\n\n\ndef build():\n    raise AssertionError('not reached')\n")
+    assert_missing_extra(run_hiding("zenoh", "run", car), "zenoh", f"{car} needs the zenoh extra")
+    late = tmp_path / "late.py"
+    late.write_text("def build():\n    from mcap.writer import Writer\n")
+    assert_missing_extra(run_hiding("mcap", "run", late), "mcap", f"{late}: build() needs the mcap extra")
 
 
 @pytest.mark.subprocess

@@ -22,7 +22,20 @@ from types import ModuleType
 
 from .errors import AsyncdonkeyError
 
-__all__ = ["MissingExtra", "install_command", "require"]
+__all__ = ["EXTRA_OF_MODULE", "MissingExtra", "extra_for_module", "install_command", "require"]
+
+#: The top-level modules the extras of ``pyproject.toml`` install, and their extra: how the commands name the
+#: extra when an import that did not go through :func:`require` fails (their last line of defence).
+EXTRA_OF_MODULE = {
+    "mcap": "mcap",
+    "foxglove": "mcap",
+    "google.protobuf": "mcap",
+    "ai_edge_litert": "tflite",
+    "tflite_runtime": "tflite",
+    "onnx": "quantize",
+    "zenoh": "zenoh",
+    "cryptography": "zenoh",
+}
 
 
 def install_command(extra: str) -> str:
@@ -44,6 +57,16 @@ class MissingExtra(AsyncdonkeyError, ImportError):
         self.extra = extra
         self.module = module
         self.reason = reason
+
+
+def extra_for_module(name: str | None) -> str | None:
+    """The extra that installs module ``name`` (or its package), ``None`` for a module no extra provides."""
+    while name:
+        extra = EXTRA_OF_MODULE.get(name)
+        if extra is not None:
+            return extra
+        name = name.rpartition(".")[0]
+    return None
 
 
 def require(module: str | Sequence[str], extra: str, feature: str) -> ModuleType:

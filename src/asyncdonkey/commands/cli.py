@@ -34,7 +34,7 @@ from typing import Any, NoReturn
 
 from .. import __version__
 from ..errors import AsyncdonkeyError
-from ..extras import MissingExtra
+from ..extras import MissingExtra, extra_for_module
 from ..loop import PartError, Vehicle, run_blocking
 from ..options import BadValue, non_negative_int, option, positive_float
 
@@ -69,6 +69,7 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
         raise CarFileError(f"{p}:{exc.lineno}: syntax error: {exc.msg}") from None
     except Exception as exc:
         sys.modules.pop(spec.name, None)
+        _raise_if_missing_extra(exc, f"{p}")
         raise CarFileError(f"{p}: importing it raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
     finally:
         with_path = str(p.resolve().parent)
@@ -88,6 +89,7 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
     except (SystemExit, MissingExtra):
         raise
     except Exception as exc:
+        _raise_if_missing_extra(exc, f"{p}: build()")
         raise CarFileError(f"{p}: build() raised {type(exc).__name__}: {exc}{_where(exc, p)}") from None
     if not isinstance(vehicle, Vehicle):
         converted = _from_donkeycar(vehicle)
@@ -95,6 +97,15 @@ def load_car(path: str | Path, car_args: list[str] | None = None) -> tuple[Vehic
             raise CarFileError(f"{p}: build() returned {type(vehicle).__name__}, expected an asyncdonkey.Vehicle")
         vehicle = converted
     return vehicle, module
+
+
+def _raise_if_missing_extra(exc: BaseException, feature: str) -> None:
+    """Raise :class:`MissingExtra` for an import of an extra's module that failed without :func:`require`
+    (a car file's own ``import zenoh``, a part that imports its extra directly)."""
+    if isinstance(exc, ModuleNotFoundError):
+        extra = extra_for_module(exc.name)
+        if extra is not None:
+            raise MissingExtra(feature, extra, str(exc.name)) from exc
 
 
 def _from_donkeycar(obj: Any) -> Vehicle | None:
@@ -251,7 +262,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.car_args = car_args
     try:
-        return _dispatch(parser, args)
+        try:
+            return _dispatch(parser, args)
+        except ModuleNotFoundError as exc:
+            _raise_if_missing_extra(exc, f"asyncdonkey {args.command}")
+            raise
     except MissingExtra as exc:
         print(f"asyncdonkey: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -8,6 +8,11 @@ leak into another, and every ending (done, stopped, failed, cancelled) fills the
 
 The tick (:meth:`Drive.tick_loop`) is flat: for each prepared entry, check its run condition, read its
 inputs, call it, store its outputs with their origins, record its time.
+
+Timing goes into one row per tick of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline and the
+tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its run condition),
+the tick's end. A part starts when the one before it ended, so one clock read per part is enough; lateness,
+durations and overruns are worked out from the rows when a report asks.
 """
 
 from __future__ import annotations
@@ -103,6 +108,7 @@ class Drive:
         self.first_start = self.last_start = self.last_end = 0.0
         self._errlog = LogThrottle(1.0)
         self._blocklog = LogThrottle(1.0)
+        self._jitterlog = LogThrottle(1.0)
         self.longest_block: tuple[float, str] | None = None
         #: parts whose shutdown() or update() thread did not finish in time (left running as daemon threads)
         self.abandoned: list[str] = []
@@ -317,70 +323,30 @@ class Drive:
         self.stop_reason = self.stop_reason or "stop()"
 
     def _ticks(
-        self,
-        rate_hz: float,
-        max_loop_count: int | None,
-        duration: float | None,
-        verbose: bool,
-        report_every: int,
+        self, rate_hz: float, max_loop_count: int | None, duration: float | None, verbose: bool, report_every: int
     ) -> Generator[Any, Any, None]:
-        """The drive's ticks. Yields a deadline (float) to be resumed at, or an awaitable whose result (or
-        exception) is to be sent (thrown) back in; returns when the drive is to end, the reason noted.
-
-        Timing goes into one row per tick of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline
-        and the tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its
-        run condition), the tick's end. A part starts when the one before it ended, so one clock read per part is
-        enough; lateness, durations and overruns are worked out from the rows when a report asks.
+        """The drive's ticks: yields a deadline (float) to be resumed at, or an awaitable whose result (or exception)
+        is to be sent (thrown) back in; returns when the drive is to end, the reason noted. Each tick fills a row
+        of the :class:`~asyncdonkey.profiler.TickTable` (module docstring). Only what every tick does is here, on
+        fast locals bound once; what is decided once, or rare (a limit, a part cut short, verbose logs), is a method.
         """
-        now = self.clock.now
-        entries = self.tick_entries
-        d = self.mem.d
-        origins = self.mem.origins
-        dormant = self.mem.dormant
-        profiler = self.profiler
-        table = self.table
-        buf = table.buf
-        window = table.window
-        ncol = table.ncol
-        commit = table.commit
-        block_report_s = self.block_report_s
-        part_failed = self._part_failed
-        report_block = self._report_block
-        jitter_log = LogThrottle(1.0)
-        nan = math.nan
-        end = now()
-        t0 = end if self.t0 is None else self.t0
-        self.first_start = self.last_start = self.last_end = t0
-        sched = Schedule(rate_hz, t0)
-        period = sched.period
-        end_at = math.inf if duration is None else t0 + duration
-        stop_at = math.inf if max_loop_count is None else max_loop_count
-        loops = self.loops
-        precise = self.waiter.precise  # never on the virtual clock, whose time stands still during a tick
-        arrived = self.waiter.arrived
-        beat = None
-        if self.guard is not None:
-            self.guard.ticking()
-            beat = self.guard.beat
+        now, entries, table = self.clock.now, self.tick_entries, self.table
+        d, origins, dormant = self.mem.d, self.mem.origins, self.mem.dormant
+        buf, window, ncol, commit = table.buf, table.window, table.ncol, table.commit
+        part_failed, report_block, block_report_s = self._part_failed, self._report_block, self.block_report_s
+        sched, stop_at, end_at = self._schedule(rate_hz, max_loop_count, duration, end := now())
+        period, loops, nan = sched.period, self.loops, math.nan
+        precise, beat = self.waiter.precise, self._start_heartbeat()  # precise: never on the virtual clock
         while not self.stop_requested:
-            if loops >= stop_at:
-                self.stop_reason = self.stop_reason or "max_loop_count"
-                return
             deadline = sched.deadline
-            if deadline >= end_at:
-                self.stop_reason = self.stop_reason or "duration"
+            if loops >= stop_at or deadline >= end_at:
+                self._limit_reached(loops >= stop_at)
                 return
             if end < deadline:  # the last tick's end (or the start): early, so wait
                 yield deadline
                 if self.stop_requested:
                     return
-                start = now()
-                if precise:  # precise mode calls back early: the last stretch is spun here
-                    arrived(start)  # (the spin window is learned from when the tick got here)
-                    while start < deadline:
-                        start = now()
-            else:
-                start = now()
+            start = self._spin_until(deadline) if precise and end < deadline else now()  # precise: spin to it
             self.last_start = t = start
             if beat is not None:
                 beat(start)
@@ -389,8 +355,7 @@ class Drive:
             if dormant:
                 dormant.clear()
             pos = (loops % window) * ncol
-            buf[pos] = deadline
-            buf[pos + 1] = start
+            buf[pos], buf[pos + 1] = deadline, start
             pos += 2
             table.begun = loops + 1
 
@@ -407,35 +372,18 @@ class Drive:
                 try:
                     args = e.args()
                     r = e.call(*args)
-                    if e.awaits:
-                        if beat is not None:  # the loop is free while it awaits: only the part's timeout bounds it
-                            beat(t + e.timeout if e.timeout is not None else math.inf)
-                        self._awaiting = r
-                        try:
-                            r = yield r
-                        finally:
-                            self._awaiting = None
+                    if e.awaits:  # awaited by the drive task (:meth:`_drive_from_task`), the result sent back
+                        r = yield r
                     t_end = now()
                     if r is not None and e.store is not None:
                         e.store(r, args, t_end)
                         if e.kicks:
                             after_store(e, origins)
-                except asyncio.CancelledError:
-                    if not self._grace_cancel:
-                        raise
-                    # cancelled by the stop grace, not by our caller: the part failed, the stop goes on
-                    self._grace_cancel = False
-                    if self.task is not None:
-                        self.task.uncancel()
-                    t_end = now()
-                    e.errors += 1
                 except Exception as exc:
                     t_end = now()
                     part_failed(e, loops, exc, t_end)
-                except PartInterrupted as exc:  # a stop request's grace ran out inside this sync part
-                    t_end = now()
-                    e.errors += 1
-                    logger.error("%s", exc)
+                except (asyncio.CancelledError, PartInterrupted) as exc:
+                    t_end = self._cut_short(e, exc)
                 buf[pos] = t_end
                 pos += 1
                 if e.latency is not None:
@@ -445,21 +393,75 @@ class Drive:
                 t = t_end
             self.current = None
             self.part_started = math.inf
-
             self.last_end = end = now()
             buf[pos] = end
             commit()
             self.loops = loops = loops + 1
-            over = end - start - period
-            if over > _TIME_EPS:
+            if end - start - period > _TIME_EPS:
                 self.overruns += 1
-                more = jitter_log.ready("jitter", end) if verbose else None
-                if more is not None:
-                    logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
-            if verbose and report_every and loops % report_every == 0:
-                logger.info("%s", profiler.table())
-            # more than a period behind: the missed deadlines are skipped and counted, never burst
-            self.skipped += sched.advance(end)
+            if verbose:
+                self._log_tick(end - start - period, end, loops, report_every)
+            self.skipped += sched.advance(end)  # more than a period behind: skipped and counted, never burst
+
+    def _schedule(
+        self, rate_hz: float, max_loop_count: int | None, duration: float | None, now: float
+    ) -> tuple[Schedule, float, float]:
+        """The ticks' deadlines from the first one (:attr:`t0`, or ``now`` when none was fixed), and the limits
+        :meth:`_ticks` checks before each tick: the tick count to stop at and the deadline to stop at."""
+        t0 = now if self.t0 is None else self.t0
+        self.first_start = self.last_start = self.last_end = t0
+        stop_at = math.inf if max_loop_count is None else max_loop_count
+        end_at = math.inf if duration is None else t0 + duration
+        return Schedule(rate_hz, t0), stop_at, end_at
+
+    def _start_heartbeat(self) -> Callable[[float], None] | None:
+        """Tell the safety process the ticks begin; its heartbeat, called once a tick (None: no safety process)."""
+        if self.guard is None:
+            return None
+        self.guard.ticking()
+        return self.guard.beat
+
+    def _limit_reached(self, max_loops: bool) -> None:
+        """The drive ends before its next tick: its tick count is done (``max_loops``) or its duration is up."""
+        self.stop_reason = self.stop_reason or ("max_loop_count" if max_loops else "duration")
+
+    def _spin_until(self, deadline: float) -> float:
+        """Precise mode: the deadline timer called back early; spin the last stretch. Returns the tick's start.
+
+        The waiter learns its spin window from when the tick got here."""
+        now = self.clock.now
+        start = now()
+        self.waiter.arrived(start)
+        while start < deadline:
+            start = now()
+        return start
+
+    def _cut_short(self, e: Entry, exc: asyncio.CancelledError | PartInterrupted) -> float:
+        """Part ``e`` was cut short by a stop request's grace: cancelled at its await, or interrupted inside its
+        sync call. The part failed (counted, an interruption logged), the stop goes on. Returns its end time.
+
+        A cancellation that is not the grace's (our caller cancelled the drive) is raised on."""
+        if isinstance(exc, asyncio.CancelledError):
+            if not self._grace_cancel:
+                raise exc
+            self._grace_cancel = False
+            if self.task is not None:
+                self.task.uncancel()
+        t_end = self.clock.now()
+        e.errors += 1
+        if isinstance(exc, PartInterrupted):
+            logger.error("%s", exc)
+        return t_end
+
+    def _log_tick(self, over: float, end: float, loops: int, report_every: int) -> None:
+        """``verbose=True``, after each tick: a tick that took ``over`` seconds more than a period is warned of
+        (rate-limited), and every ``report_every`` ticks the profiler's table is logged."""
+        if over > _TIME_EPS:
+            more = self._jitterlog.ready("jitter", end)
+            if more is not None:
+                logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
+        if report_every and loops % report_every == 0:
+            logger.info("%s", self.profiler.table())
 
     async def _drive_from_timer(self, ticks: Generator[Any, Any, None], period: float) -> None:
         """Every tick runs from the deadline timer's callback; this task only waits for the drive to end.
@@ -495,10 +497,15 @@ class Drive:
             ticks.close()
 
     async def _drive_from_task(self, ticks: Generator[Any, Any, None]) -> None:
-        """This task resumes the ticks: it waits for each deadline they yield and awaits each awaitable."""
+        """This task resumes the ticks: it waits for each deadline they yield and awaits each awaitable.
+
+        An awaitable is the call of the part now running (:attr:`current`): while it is awaited it is
+        :attr:`_awaiting` (what the stop grace cancels), and the loop is free, so the safety process's heartbeat
+        is pushed to the part's timeout (none: no bound but the part's own)."""
         loop = self.loop
         now = self.clock.now
         waiter = self.waiter
+        guard = self.guard
         send, throw = ticks.send, ticks.throw
         try:
             step = send(None)
@@ -512,11 +519,17 @@ class Drive:
                             await waiter.wait_until(step, wake)
                     step = send(None)
                     continue
+                self._awaiting = step
+                if guard is not None:
+                    e, started = self.current, self.part_started
+                    guard.beat(started + e.timeout if e is not None and e.timeout is not None else math.inf)
                 try:
                     result = await step
                 except BaseException as exc:
+                    self._awaiting = None
                     step = throw(exc)
                 else:
+                    self._awaiting = None
                     step = send(result)
         except StopIteration:
             return

@@ -1,0 +1,201 @@
+"""The drive loop's CPU per tick, this tree's ``Drive`` against another ``drive.py``, in paired rounds.
+
+A change to the tick (a refactor, a new feature on the hot path) should be judged by what it costs per tick, and
+on a shared machine a before/after pair of separate runs says little: CPU moves by tens of percent over minutes
+(two runs of the *same* code, a minute apart in separate interpreters, differed by up to 60 % a round). So both
+versions run in one interpreter: the other ``drive.py`` (``--before``, a copy of the old file) is loaded as a
+module of the package beside the current one, and each run hands ``Vehicle.run()`` one or the other ``Drive``
+class. Round after round every car runs once with each (order alternating), a fraction of a second apart, and the
+figure is the median over rounds of the *paired* difference per tick (current - before), beside each side's
+median.
+
+The cars (``Stamp`` first, as in ``benchmarks/loop.py``; a tick's CPU is the loop thread's ``time.thread_time``
+from the first tick's stamp to the last's over the ticks in between, so a drive's start and end-of-drive report
+are not in it):
+
+* ``idle flat``: the stamp alone, run flat out (a rate far above what the loop can do, on uvloop, the deadline
+  timer's callback driving the ticks); every tick overruns its period here;
+* ``10 parts flat``: the stamp and 10 trivial sync parts, flat out;
+* ``idle virtual`` / ``10 parts virtual``: the same at 20 Hz on :class:`~asyncdonkey.VirtualClockLoop`, where no
+  tick overruns (the virtual loop's jump to each deadline is in the figure, the same on both sides);
+* ``10 parts, 1 async virtual``: one of the 10 parts is ``async def run``, so the drive task resumes the ticks
+  and awaits that part every tick.
+
+Under load even paired medians move by a percent or two, so ``--opcodes`` adds a figure no load moves: the
+bytecodes executed per tick in the code of the two ``drive.py`` files (a tracer counts them over 200 and 400
+ticks; the difference over 200 is the per-tick count, without the drive's start and end). It counts
+instructions, not their cost, but a refactor that keeps the hot path's bytecode keeps its cost.
+
+    cp src/asyncdonkey/drive.py /tmp/drive_before.py      # before the change
+    python benchmarks/tick_ab.py --before /tmp/drive_before.py --rounds 30
+    python benchmarks/tick_ab.py --before /tmp/drive_before.py --opcodes
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import importlib.util
+import statistics
+import sys
+import time
+
+import asyncdonkey.loop
+from asyncdonkey import Vehicle, VirtualClockLoop
+from asyncdonkey.loop import run_blocking
+
+Drive = asyncdonkey.loop.Drive  # this tree's
+
+N_PARTS = 10
+
+
+class Stamp:
+    """The car's first part: the loop thread's CPU time at each tick's start."""
+
+    def __init__(self) -> None:
+        self.cpu: list[float] = []
+
+    def run(self) -> None:
+        self.cpu.append(time.thread_time())
+
+
+class Noop:
+    def run(self, x=None):
+        return x
+
+
+class AsyncNoop:
+    async def run(self, x=None):
+        return x
+
+
+CONFIGS = {  # name: (parts after the stamp, how many of them async, virtual clock)
+    "idle flat": (0, 0, False),
+    "10 parts flat": (N_PARTS, 0, False),
+    "idle virtual": (0, 0, True),
+    "10 parts virtual": (N_PARTS, 0, True),
+    "10 parts, 1 async virtual": (N_PARTS, 1, True),
+}
+
+
+def load_before(path: str) -> type:
+    """The ``Drive`` class of another ``drive.py``, loaded as a module of this asyncdonkey (its relative imports
+    resolve here), so only the drive differs between the two sides."""
+    spec = importlib.util.spec_from_file_location("asyncdonkey._drive_before", path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"tick_ab: cannot load {path} as a module")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module.Drive
+
+
+def us_per_tick(drive_cls: type, config: tuple[int, int, bool], ticks: int) -> float:
+    n_parts, n_async, virtual = config
+    v = Vehicle()
+    stamp = Stamp()
+    v.add(stamp)
+    for i in range(n_parts):
+        v.add(AsyncNoop() if i < n_async else Noop(), inputs=[f"c{i}"], outputs=[f"c{i + 1}"])
+    asyncdonkey.loop.Drive = drive_cls
+    gc.collect()
+    if virtual:
+        with asyncio.Runner(loop_factory=VirtualClockLoop) as runner:
+            runner.run(v.run(20, ticks))
+    else:
+        run_blocking(v.run(1e9, ticks), use_uvloop=True)
+    c = stamp.cpu
+    if len(c) != ticks:
+        raise RuntimeError(f"tick_ab: {len(c)} ticks ran, {ticks} asked for")
+    return (c[-1] - c[0]) / (len(c) - 1) * 1e6
+
+
+def compare(before: type, after: type, rounds: int, ticks: int, repeats: int) -> dict[str, dict[str, float]]:
+    for cls in (before, after):  # warm up both (imports, caches, the specializing interpreter)
+        for config in CONFIGS.values():
+            us_per_tick(cls, config, 1000)
+    pairs: dict[str, list[tuple[float, float]]] = {name: [] for name in CONFIGS}
+    for rnd in range(rounds):
+        for name, config in CONFIGS.items():
+            a: list[float] = []
+            b: list[float] = []
+            for rep in range(repeats):  # A B A B ... (B A B A ... every other round)
+                first, second = ((before, a), (after, b)) if (rnd + rep) % 2 == 0 else ((after, b), (before, a))
+                first[1].append(us_per_tick(first[0], config, ticks))
+                second[1].append(us_per_tick(second[0], config, ticks))
+            pairs[name].append((min(a), min(b)))
+    asyncdonkey.loop.Drive = after
+    out = {}
+    for name, p in pairs.items():
+        rel = [(b - a) / a * 100 for a, b in p]
+        out[name] = {
+            "before_us": statistics.median(a for a, _ in p),
+            "after_us": statistics.median(b for _, b in p),
+            "diff_us": statistics.median(b - a for a, b in p),
+            "diff_pct": statistics.median(rel),
+            "q1_pct": statistics.quantiles(rel, n=4)[0],
+            "q3_pct": statistics.quantiles(rel, n=4)[2],
+            "after_less": sum(b < a for a, b in p),
+        }
+    return out
+
+
+def opcodes_per_tick(drive_cls: type, config: tuple[int, int, bool]) -> float:
+    """Bytecodes executed per tick in the code of ``drive_cls``'s module (its file), by a tracer."""
+    filename = sys.modules[drive_cls.__module__].__file__
+    count = [0]
+
+    def opcode(frame, event, arg):
+        if event == "opcode":
+            count[0] += 1
+        return opcode
+
+    def call(frame, event, arg):
+        if frame.f_code.co_filename != filename:
+            return None
+        frame.f_trace_opcodes = True
+        return opcode
+
+    counts = []
+    for ticks in (200, 400):
+        count[0] = 0
+        sys.settrace(call)
+        try:
+            us_per_tick(drive_cls, config, ticks)
+        finally:
+            sys.settrace(None)
+        counts.append(count[0])
+    return (counts[1] - counts[0]) / 200
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--before", required=True, help="the other drive.py (a copy of the file before a change)")
+    ap.add_argument("--rounds", type=int, default=30)
+    ap.add_argument("--ticks", type=int, default=3_000, help="ticks per run")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per side and round (the minimum counts)")
+    ap.add_argument("--opcodes", action="store_true", help="also count the bytecodes per tick of each side")
+    args = ap.parse_args(argv)
+    if args.rounds < 2 or args.ticks < 2 or args.repeats < 1:
+        ap.error("--rounds and --ticks must be >= 2, --repeats >= 1")
+    before = load_before(args.before)
+    if args.opcodes:
+        print(f"{'car':27} bytecodes per tick in drive.py: before, after")
+        for name, config in CONFIGS.items():
+            print(f"{name:27} {opcodes_per_tick(before, config):8.1f} {opcodes_per_tick(Drive, config):8.1f}")
+    out = compare(before, Drive, args.rounds, args.ticks, args.repeats)
+    print(f"{args.rounds} paired rounds, min of {args.repeats} runs of {args.ticks} ticks a side")
+    print("CPU µs per tick of the loop thread: medians over rounds; diff: after - before, paired by round")
+    print(f"{'car':27} {'before':>8} {'after':>8} {'diff µs':>8} {'diff %':>7} {'IQR of diff %':>15} after<before")
+    for name, r in out.items():
+        iqr = f"{r['q1_pct']:+.1f}..{r['q3_pct']:+.1f}"
+        print(
+            f"{name:27} {r['before_us']:8.2f} {r['after_us']:8.2f} {r['diff_us']:+8.3f} {r['diff_pct']:+7.2f} "
+            f"{iqr:>15} {r['after_less']}/{args.rounds}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -696,6 +696,7 @@ def add_replay_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--pilot",
         required=True,
+        metavar="MODEL",
         help="the model file to replay: .onnx, or .tflite with the tflite extra, e.g. models/pilot.onnx",
     )
     p.add_argument("--csv", metavar="FILE", default=None, help="write one row per record to FILE (a new CSV file)")

@@ -387,6 +387,25 @@ def wake_rows(d: dict[str, Any]) -> list[Row]:
     return [(f"wake-up {rate} Hz", figure, _fmt(o, 0), _fmt(t, 0), _ratio(o, t))]
 
 
+def fleet_rows(d: dict[str, Any]) -> list[Row]:
+    """A fleet on one pilot server (benchmarks/fleet.py): per car count, batched and one call per frame."""
+    rows: list[Row] = []
+    figure = "frame→command p50 / p99 (ms); server CPU (% of a core); mean batch"
+    for mode, runs in (d.get("runs") or {}).items():
+        for r in runs:
+            cell = (
+                f"{_fmt(r.get('latency_p50_ms'), 1)} / {_fmt(r.get('latency_p99_ms'), 1)};"
+                f" {_fmt(r.get('server_cpu_pct'), 0)} %; {_fmt(r.get('batch_mean'), 1)}"
+                + (" (saturated)" if r.get("saturated") else "")
+            )
+            rows.append((f"fleet {r.get('cars')} cars, {mode.replace('_', ' ')}", figure, cell, "", ""))
+    sat = d.get("saturates_at") or {}
+    if sat:
+        shown = ", ".join(f"{m.replace('_', ' ')} {v if v is not None else 'none measured'}" for m, v in sat.items())
+        rows.append(("fleet", "car count at which the server saturates", shown, "", ""))
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "loop": loop_rows,
     "wake": wake_rows,
@@ -398,6 +417,7 @@ BENCHMARKS: dict[str, Callable[[dict[str, Any]], list[Row]]] = {
     "web": web_rows,
     "virtual_clock": virtual_clock_rows,
     "zenoh": zenoh_rows,
+    "fleet": fleet_rows,
 }
 
 

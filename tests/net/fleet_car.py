@@ -4,8 +4,9 @@
     python tests/net/fleet_car.py --frames frames.npy --car car1 --config pair/{car}/car.json5
 
 Each ``--car`` is a :class:`asyncdonkey.Vehicle` with its own Zenoh session (as a car on its own machine), at
-``--hz``: a player of the recorded frames on ``cam/image_array``, the :class:`ZenohPublisher` that sends them
-(raw, or JPEG with ``--jpeg``), the :class:`ZenohSubscriber` of the one-sample command
+``--hz`` (the cars of one process start spread over one period: out of phase, as separate cars are): a player
+of the recorded frames on ``cam/image_array``, the :class:`ZenohPublisher` that sends them (raw, or JPEG with
+``--jpeg``), the :class:`ZenohSubscriber` of the one-sample command
 (``cars/<car>/pilot/command``, as ``examples/car.py --pilot remote`` takes it), and a
 :class:`~asyncdonkey.parts.failsafe.StaleCommandStop` of ``--failsafe-ms`` writing the throttle the car would
 drive (``car/throttle``). Nothing else: a car whose process costs little, so many fit on one machine.
@@ -141,7 +142,13 @@ async def main(argv: list[str] | None = None) -> int:
         loop.add_signal_handler(sig, stop)
     duration = args.seconds if args.seconds > 0 else None
     print(json.dumps({"event": "started", "cars": args.car, "t": time.monotonic()}), flush=True)
-    await asyncio.gather(*(car.vehicle.run(rate_hz=args.hz, duration=duration) for car in cars))
+
+    async def drive(k: int, car: FleetCar) -> None:
+        # cars of one process start spread over a period, as cars on their own machines are out of phase
+        await asyncio.sleep(k / len(cars) / args.hz)
+        await car.vehicle.run(rate_hz=args.hz, duration=duration)
+
+    await asyncio.gather(*(drive(k, car) for k, car in enumerate(cars)))
     for car in cars:
         print(json.dumps(car.report()), flush=True)
     return 0

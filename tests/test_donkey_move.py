@@ -72,12 +72,17 @@ def test_donkey_createcar_and_the_cars_command_line_work_with_the_extra(tmp_path
 
 
 # -- a missing camera module: one line ------------------------------------------------------------------------
-def run_command(tmp_path: Path, manage_py: Path, *, missing: str) -> subprocess.CompletedProcess:
+def run_command(tmp_path: Path, manage_py: Path, *, missing: str = "", module: str = "") -> subprocess.CompletedProcess:
     """``asyncdonkey donkey manage.py drive`` as a user runs it, in a process where ``missing`` cannot be
-    imported (as on a PC, or in a venv made without the system's packages)."""
+    imported (as on a PC, or in a venv made without the system's packages), or where ``picamera2`` is the
+    source ``module``."""
     env = car_env(tmp_path)
-    custom = Path(env["PYTHONPATH"]) / "sitecustomize.py"
-    custom.write_text(custom.read_text() + f"sys.modules[{missing!r}] = None\n")
+    site = Path(env["PYTHONPATH"])
+    if missing:
+        custom = site / "sitecustomize.py"
+        custom.write_text(custom.read_text() + f"sys.modules[{missing!r}] = None\n")
+    if module:
+        (site / "picamera2.py").write_text(module)
     return subprocess.run(
         [str(BIN / "asyncdonkey"), "donkey", "--no-uvloop", str(manage_py), "drive"],
         cwd=tmp_path,
@@ -102,6 +107,23 @@ def test_a_missing_picamera2_is_one_line_naming_the_setting_and_both_answers(tmp
     assert 'CAMERA_TYPE = "PICAM"' in line and "picamera2" in line
     assert 'CAMERA_TYPE = "MOCK"' in line and "myconfig.py" in line
     assert "sudo apt install python3-picamera2" in line and "--system-site-packages" in line
+
+
+#: picamera2 on a Pi whose venv has numpy 2 and sees apt's simplejpeg, built for numpy 1: what numpy raises
+NUMPY_1_SIMPLEJPEG = (
+    "raise ValueError('numpy.dtype size changed, may indicate binary incompatibility. Expected 96 from C header, "
+    "got 88 from PyObject')\n"
+)
+
+
+@pytest.mark.subprocess
+def test_picamera2_built_for_numpy_1_is_one_line_naming_simplejpeg(tmp_path):
+    manage_py = create_car(tmp_path / "mycar", DRIVE_TRAIN_TYPE="MOCK")
+    done = run_command(tmp_path, manage_py, module=NUMPY_1_SIMPLEJPEG)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr + done.stdout
+    [line] = asyncdonkey_lines(done.stderr)
+    assert "numpy.dtype size changed" in line and "pip install --force-reinstall simplejpeg" in line
 
 
 @pytest.mark.subprocess

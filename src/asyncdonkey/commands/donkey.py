@@ -276,7 +276,7 @@ def donkey_main(args: argparse.Namespace) -> int:
     except PartError as exc:
         print(f"asyncdonkey: {exc}", file=sys.stderr)
         return 1
-    except ImportError as exc:
+    except (ImportError, ValueError) as exc:  # ValueError: numpy refusing a module built for numpy 1
         hint = missing_module_hint(exc)
         if hint is None:
             raise
@@ -317,15 +317,27 @@ _EXTRA_MODULES = frozenset(
 )
 
 
-def missing_module_hint(exc: ImportError) -> str | None:
+def missing_module_hint(exc: BaseException) -> str | None:
     """One line for an import that failed in a Donkeycar car: the setting that needs the module and the ways
-    out, the extra to install, or where the car imports it. ``None`` when ``exc`` is not a missing module.
+    out, the extra to install, or where the car imports it. ``None`` when ``exc`` is not a failed import.
+
+    A compiled module built for numpy 1 (on the Pi, apt's ``simplejpeg``, which picamera2 imports, in a venv
+    with numpy 2) fails with numpy's "size changed" ``ValueError`` or an ``ImportError``; a PyPI wheel built for
+    numpy 2 installed into the venv replaces it.
 
     The car's settings are read from the failing code's own ``cfg`` (the templates pass it down), so the line
     names the value the car was configured with.
     """
     if isinstance(exc, MissingExtra):
         return str(exc)
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    if "numpy" in text and ("size changed" in text or "multiarray" in text or "NumPy 1.x" in text):
+        return (
+            f"a compiled module the car imports was built for numpy 1 ({text}); on the Raspberry Pi it is apt's "
+            "simplejpeg, which picamera2 imports: pip install --force-reinstall simplejpeg (a wheel built for numpy 2)"
+        )
+    if not isinstance(exc, ImportError):
+        return None
     module = (exc.name or "").split(".")[0]
     if not isinstance(exc, ModuleNotFoundError) or not module:
         return None

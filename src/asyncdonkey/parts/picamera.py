@@ -147,8 +147,12 @@ class PiCamera:
         """Call ``callback(image, origin)`` from the capture thread for each new frame (a pipelined pilot with
         ``trigger`` starts on it at once). Returns the unsubscriber."""
 
+        last: list[Frame | None] = [None]
+
         def on_frame(frame: Frame, _read_time: float) -> None:
-            callback(frame.image, frame.origin)
+            if frame is not last[0]:  # (a read racing shutdown gives the newest frame back: not a new one)
+                last[0] = frame
+                callback(frame.image, frame.origin)
 
         return self.poller.latest.subscribe(on_frame)
 

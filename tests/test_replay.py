@@ -311,7 +311,7 @@ def test_csv_rows_are_exact_and_two_replays_are_identical(recorded, model, tmp_p
 
 # ------------------------------------------------------------------------------------- library errors
 def test_library_errors_name_what_is_wrong(tmp_path, recorded):
-    with pytest.raises(TubNotFoundError, match="no such file or directory: .*nope"):
+    with pytest.raises(TubNotFoundError, match=r"no such file or directory: .*nope"):
         replay(tmp_path / "nope", lambda image: (0.0, 0.0))
     with pytest.raises(ReplayError, match="records no cam/depth"):
         replay(recorded, lambda image: (0.0, 0.0), image_key="cam/depth")

@@ -197,7 +197,9 @@ def test_two_inputs_and_three_values_are_refused():
 def test_missing_runtime_says_what_to_install(monkeypatch):
     for module in ("ai_edge_litert.interpreter", "tflite_runtime.interpreter"):
         monkeypatch.setitem(sys.modules, module, None)  # as if not installed
-    with pytest.raises(ImportError, match=r"running \.tflite pilots needs the tflite extra .*: pip install 'asyncdonkey\[tflite\]'$"):
+    with pytest.raises(
+        ImportError, match=r"running \.tflite pilots needs the tflite extra .*: pip install 'asyncdonkey\[tflite\]'$"
+    ):
         tflite_interpreter()
     with pytest.raises(ImportError, match=r"pip install 'asyncdonkey\[tflite\]'"):
         load_pilot(MODELS / "probe_pair.tflite")

@@ -139,6 +139,18 @@ def test_a_loopback_only_host_prints_the_local_name_with_the_note():
     assert not lines[2].startswith("  http")
 
 
+@pytest.mark.parametrize(
+    ("host", "expected"),
+    [("0.0.0.0", ["192.168.1.20"]), ("::", ["[2a02:810d::7]"]), ("", ["192.168.1.20", "[2a02:810d::7]"])],
+)
+def test_the_controller_prints_only_addresses_of_the_ip_versions_it_listens_on(host, expected):
+    """The listener's IPv6 sockets are IPv6-only: ``0.0.0.0`` takes no IPv6 connection, ``::`` no IPv4 one."""
+    ctr, _ = controller(host=host)
+    ctr.interfaces = table(LOOPBACK, ("wlan0", UP, ["192.168.1.20", "2a02:810d::7", "fe80::1%3"]))
+    hosts = [u.url.split("/")[2].rsplit(":", 1)[0] for u in ctr._urls()]
+    assert hosts == [*expected, f"{socket.gethostname().split('.')[0]}.local"]
+
+
 def test_a_controller_on_one_address_prints_that_address_only():
     ctr, _ = controller(host="192.168.1.20")
     ctr.interfaces = table(LOOPBACK, WLAN, ("eth0", UP, ["10.0.0.5"]))

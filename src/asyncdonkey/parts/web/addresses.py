@@ -37,13 +37,14 @@ import functools
 import ipaddress
 import socket
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 __all__ = [
     "IFF_LOOPBACK",
     "IFF_RUNNING",
     "IFF_UP",
+    "WILDCARD_VERSIONS",
     "DriveUrl",
     "HostAddress",
     "InterfaceRow",
@@ -62,6 +63,10 @@ IFF_RUNNING = 0x40
 InterfaceRow = tuple[str, int, Sequence[str]]
 #: what lists the interfaces: :func:`system_interfaces`, or a fake in tests
 InterfaceTable = Callable[[], Iterable[InterfaceRow]]
+
+#: the IP versions a server listening on each wildcard address accepts (IPv6 sockets are IPv6-only, as asyncio
+#: and the web controller's listener make them; ``""`` listens on both)
+WILDCARD_VERSIONS: dict[str, tuple[int, ...]] = {"": (4, 6), "0.0.0.0": (4,), "::": (6,)}
 
 #: interface name prefixes of container / VM bridges and their virtual ports: reachable from this host only
 _BRIDGE_PREFIXES = (
@@ -109,8 +114,14 @@ class DriveUrl:
     note: str = ""
 
 
-def reachable_hosts(table: InterfaceTable | None = None, hostname: str | None = None) -> list[HostAddress]:
-    """This host's addresses in the order a phone should try them, ``<hostname>.local`` last (see the module)."""
+def reachable_hosts(
+    table: InterfaceTable | None = None, hostname: str | None = None, versions: Collection[int] = (4, 6)
+) -> list[HostAddress]:
+    """This host's addresses in the order a phone should try them, ``<hostname>.local`` last (see the module).
+
+    ``versions``: the IP versions the server listens on (``0.0.0.0`` is IPv4 only, ``::`` IPv6 only: printing
+    an address it does not listen on would offer a URL that cannot connect).
+    """
     rows = list((table or system_interfaces)())
     ranked: list[tuple[int, int, HostAddress]] = []
     for name, flags, addresses in rows:
@@ -122,6 +133,8 @@ def reachable_hosts(table: InterfaceTable | None = None, hostname: str | None = 
             if rank is None:
                 continue
             ip = ipaddress.ip_address(text.split("%", 1)[0])
+            if ip.version not in versions:
+                continue
             host = f"[{ip}]" if ip.version == 6 else str(ip)
             if any(h.host == host for _, _, h in ranked):
                 continue
@@ -136,11 +149,16 @@ def reachable_hosts(table: InterfaceTable | None = None, hostname: str | None = 
 
 
 def drive_urls(
-    scheme: str, port: int, path: str, table: InterfaceTable | None = None, hostname: str | None = None
+    scheme: str,
+    port: int,
+    path: str,
+    table: InterfaceTable | None = None,
+    hostname: str | None = None,
+    versions: Collection[int] = (4, 6),
 ) -> list[DriveUrl]:
     """``scheme://<host>:<port><path>`` for every host of :func:`reachable_hosts`; the first is the one to
     show as a QR code."""
-    hosts = reachable_hosts(table, hostname)
+    hosts = reachable_hosts(table, hostname, versions)
     urls = [DriveUrl(f"{scheme}://{h.host}:{port}{path}", h.reachable, h.note) for h in hosts]
     # the first reachable one leads (container bridges rank below LAN addresses already; this covers a host
     # with only bridges, where the .local name is the better first guess)

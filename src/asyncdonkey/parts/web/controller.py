@@ -51,7 +51,7 @@ from ...contracts import Contracts, Gate
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from ..control import DRIVE_MODES, USER, normalise_mode
-from .addresses import DriveUrl, InterfaceTable, drive_urls, system_interfaces
+from .addresses import WILDCARD_VERSIONS, DriveUrl, InterfaceTable, drive_urls, system_interfaces
 from .auth import TOKEN_PARAM, Access, Sessions, WebConfigError, is_loopback, new_token, origin_allowed
 from .calibrate import (
     CALIBRATION,
@@ -683,8 +683,8 @@ class WebController:
         """The drive URLs to print, the one for the QR code first (:mod:`.addresses`)."""
         scheme = "https" if self.ssl_context is not None else "http"
         query = f"?{TOKEN_PARAM}={self.token}" if self.token else ""
-        if self.host in ("", "0.0.0.0", "::"):
-            return drive_urls(scheme, self.port, f"/drive{query}", self.interfaces)
+        if self.host in WILDCARD_VERSIONS:
+            return drive_urls(scheme, self.port, f"/drive{query}", self.interfaces, None, WILDCARD_VERSIONS[self.host])
         host = f"[{self.host}]" if ":" in self.host else self.host
         return [DriveUrl(f"{scheme}://{host}:{self.port}/drive{query}")]
 

@@ -233,7 +233,7 @@ def test_apt_simplejpeg_built_for_numpy_1_gets_its_own_hint(monkeypatch, error):
     monkeypatch.setattr(sys, "meta_path", [Finder(), *sys.meta_path])
     with pytest.raises(PicameraMissing) as info:
         import_picamera2()
-    assert "pip install --force-reinstall simplejpeg" in str(info.value) and "\n" not in str(info.value)
+    assert "pip install --force-reinstall --no-deps simplejpeg" in str(info.value) and "\n" not in str(info.value)
     assert "apt install" not in str(info.value)
 
 

@@ -93,7 +93,7 @@ def import_picamera2() -> ModuleType:
             raise PicameraMissing(
                 f"picamera2 cannot be imported: a compiled module it uses was built for numpy 1 ({_first_line(exc)}); "
                 "install a simplejpeg built for this venv's numpy 2 with "
-                "`.venv/bin/pip install --force-reinstall simplejpeg` (see docs/raspberry-pi.md)"
+                "`.venv/bin/pip install --force-reinstall --no-deps simplejpeg` (see docs/raspberry-pi.md)"
             ) from None
         if not isinstance(exc, ImportError):
             raise

@@ -46,6 +46,7 @@ from ..errors import PartError
 from ..extras import MissingExtra, install_command
 from ..loop import DriveReport, Vehicle
 from ..memory import Memory
+from ..parts.web.addresses import drive_urls
 from .donkey_tflite import tflite_pilots_replaced
 
 __all__ = [
@@ -122,6 +123,7 @@ class DonkeycarVehicle(Vehicle):
     def add(self, part: Any, inputs: Any = (), outputs: Any = (), *args: Any, **kwargs: Any) -> None:
         if _serves_on_tornado(part):
             kwargs.setdefault("name", type(part).__name__)
+            _announce_web_part(part)
             part = _StoppableServer(part)
         super().add(part, inputs, outputs, *args, **kwargs)
 
@@ -154,6 +156,20 @@ def _serves_on_tornado(part: Any) -> bool:
     return any(c.__module__.startswith("tornado.") for c in type(part).__mro__) and callable(
         getattr(part, "update", None)
     )
+
+
+def _announce_web_part(part: Any) -> None:
+    """Print the addresses a phone can open for a Donkeycar web part: Donkeycar logs only
+    ``<hostname>.local:<port>``, which Debian and Pi OS do not resolve without mDNS (see
+    :mod:`asyncdonkey.parts.web.addresses`). Donkeycar's server listens on every IPv4 interface."""
+    port = getattr(part, "port", None)
+    if not isinstance(port, int):
+        return
+    page = "/drive" if type(part).__name__ == "LocalWebController" else "/"
+    urls = drive_urls("http", port, page, versions=(4,))
+    lines = [f"{type(part).__name__} (Donkeycar's), from a phone on the car's network:"]
+    lines += [f"  {u.url}" + (f"  ({u.note})" if u.note else "") for u in urls]
+    print("\n".join(lines), file=sys.stderr, flush=True)
 
 
 class _StoppableServer:

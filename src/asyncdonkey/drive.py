@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from .contracts import Contracts
     from .drive_report import DriveReport
     from .safety.process import SafetyProcess
-    from .watchdog import Watchdog
+    from .safety.watchdog import Watchdog
 
 __all__ = ["Drive"]
 

@@ -30,9 +30,9 @@ from .memory import Memory
 from .plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
 from .profiler import Profiler
 from .safety.process import GuardedOutput, SafetyProcess, SafetyProcessError, heartbeat_timeout_for
+from .safety.watchdog import ActuatorRuntime, Watchdog, watched
 from .shutdown import shutdown_drive
 from .signals import stop_on_signals
-from .watchdog import ActuatorRuntime, Watchdog, watched
 
 __all__ = [
     "AGE_SUFFIX",

@@ -19,6 +19,7 @@ MOVED = {
     "asyncdonkey.recordings": "asyncdonkey.commands.recordings",
     "asyncdonkey.parts.zenoh.cli": "asyncdonkey.commands.zenoh",
     "asyncdonkey.testing.virtual_loop": "asyncdonkey.virtual_loop",
+    "asyncdonkey.watchdog": "asyncdonkey.safety.watchdog",
 }
 
 

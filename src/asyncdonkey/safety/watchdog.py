@@ -34,15 +34,15 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .ratelimit import LogThrottle
+from ..ratelimit import LogThrottle
 
 if TYPE_CHECKING:
-    from .plan import Entry
-    from .runtypes import LoopActivity
+    from ..plan import Entry
+    from ..runtypes import LoopActivity
 
 __all__ = ["ActuatorRuntime", "Watchdog"]
 
-logger = logging.getLogger("asyncdonkey.watchdog")
+logger = logging.getLogger("asyncdonkey.watchdog")  # its name before the move to asyncdonkey.safety, kept
 
 #: The longest the watchdog sleeps without a deadline to wait for (it is poked when one appears).
 _IDLE_WAKE_S = 1.0

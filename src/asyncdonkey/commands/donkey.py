@@ -350,7 +350,8 @@ def missing_module_hint(exc: BaseException) -> str | None:
     if "numpy" in text and ("size changed" in text or "multiarray" in text or "NumPy 1.x" in text):
         return (
             f"a compiled module the car imports was built for numpy 1 ({text}); on the Raspberry Pi it is apt's "
-            "simplejpeg, which picamera2 imports: pip install --force-reinstall simplejpeg (a wheel built for numpy 2)"
+            "simplejpeg, which picamera2 imports: pip install --force-reinstall --no-deps simplejpeg "
+            "(a wheel built for numpy 2)"
         )
     if not isinstance(exc, ImportError):
         return None

@@ -3,7 +3,7 @@
 The server is ``asyncdonkey pilot-server`` (another process), the cars light processes of
 ``tests/net/fleet_car.py``: each car a Vehicle with its own Zenoh session, replaying simulator frames recorded
 once (160x120 RGB) at 20 Hz, taking its commands (``cars/<car>/pilot/command``) and holding them through a
-``StaleCommandStop`` of 250 ms, four cars per process. For 1, 4, 8 and 16 cars, the server runs the same
+``StaleCommandStop`` of 250 ms, four cars per process. For 1, 4, 8, 16, 24 and 32 cars, the server runs the same
 model twice: with a dynamic batch (one call per batch, window 5 ms) and with its batch fixed at 1 (one call per
 frame). Figures per run, over the measured seconds after every car drives:
 
@@ -11,7 +11,8 @@ frame). Figures per run, over the measured seconds after every car drives:
   frame it answers (the car's capture time, carried to the server and back): the pooled p50 and p99 over every
   car, and the worst car's p99;
 * **answered**: commands taken over frames sent, and the slowest car's command rate;
-* **the server's CPU** (its process, % of one core), the mean batch, the model call's p50/p99;
+* **the server's CPU** (its process, % of one core), the mean batch, the model's time per batch p50/p99 (one
+  call, or one call per frame with the batch fixed at 1);
 * **the machine**: every core's busy share, and of it the benchmark's own processes (cars and server).
 
 A run **saturates** when some car gets fewer than 90 % of its frames answered or its p99 passes the 250 ms
@@ -23,7 +24,7 @@ Zenoh's framing, 10-60 bytes per sample, and TCP/TLS not counted): frames raw an
 Loopback only (127.0.0.1, plain TCP, no scouting), Zenoh's shared memory off (as between machines). The cars run
 on the same two cores as the server: at 16 cars they take a share of the machine a real fleet would not.
 
-    python benchmarks/fleet.py              # about 4 minutes
+    python benchmarks/fleet.py              # about 5 minutes
     python benchmarks/fleet.py --quick      # 1 and 4 cars, about a minute
     python benchmarks/fleet.py --json
 """
@@ -152,10 +153,8 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
             for name in names[k : k + CARS_PER_PROCESS]:
                 args += ["--car", name]
             cars.append(Proc(args))
-        end = time.monotonic() + 60
-        while sum(len(p.of("driving")) for p in cars) < n:
-            if time.monotonic() > end:
-                raise SystemExit(f"fleet.py: not every car drove:\n{''.join(cars[0].lines[-10:])}")
+        end = time.monotonic() + 30  # a saturated server may never answer some cars: measured as it is
+        while sum(len(p.of("driving")) for p in cars) < n and time.monotonic() < end:
             time.sleep(0.05)
         time.sleep(1.0)  # settle
         pids = [server.p.pid, *(p.p.pid for p in cars)]
@@ -203,8 +202,10 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
             "model_call_p50_ms": float(final[3]),
             "model_call_p99_ms": float(final[4]),
         }
+    out["driving"] = sum(1 for r in reports if r["commands"] > 0)
     out["saturated"] = bool(
         len(reports) < n
+        or out["driving"] < n
         or out["answered_min"] < 0.9
         or out["worst_car_p99_ms"] is None
         or out["worst_car_p99_ms"] > FAILSAFE_MS
@@ -235,7 +236,7 @@ def measure(quick: bool, counts: list[int] | None = None, seconds: float | None 
     from asyncdonkey.parts.zenoh.batch_infer import dynamic_batch_onnx
     from asyncdonkey.pilot_export import export_donkey_linear_shaped
 
-    counts = counts or ([1, 4] if quick else [1, 4, 8, 16])
+    counts = counts or ([1, 4] if quick else [1, 4, 8, 16, 24, 32])
     seconds = seconds or (4.0 if quick else 8.0)
     with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp:
         folder = Path(tmp)
@@ -272,7 +273,7 @@ def table(r: dict[str, Any]) -> str:
         f"fleet on one pilot server ({r['model']}), {r['rate_hz']:g} Hz per car, window {r['window_ms']:g} ms,"
         f" {r['seconds']:g} s per run",
         "| cars | calls | frame→command p50 / p99 (ms) | worst car p99 | slowest car Hz | answered | server CPU %"
-        " | batch mean | model call p50 / p99 (ms) | machine busy % (ours) |",
+        " | batch mean | model time per batch p50 / p99 (ms) | machine busy % (ours) |",
         "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for mode, rs in r["runs"].items():
@@ -305,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="1 and 4 cars, 4 s each (about a minute)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
-    ap.add_argument("--cars", type=int, nargs="+", help="car counts to run (default 1 4 8 16)")
+    ap.add_argument("--cars", type=int, nargs="+", help="car counts to run (default 1 4 8 16 24 32)")
     ap.add_argument("--seconds", type=float, help="measured seconds per run (default 8, quick 4)")
     args = ap.parse_args(argv)
     results = measure(args.quick, args.cars, args.seconds)

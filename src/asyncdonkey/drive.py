@@ -519,11 +519,11 @@ class Drive:
                             await waiter.wait_until(step, wake)
                     step = send(None)
                     continue
-                self._awaiting = step
-                if guard is not None:
-                    e, started = self.current, self.part_started
-                    guard.beat(started + e.timeout if e is not None and e.timeout is not None else math.inf)
-                try:
+                try:  # anything raised here is the part's: thrown in where it is awaited, as its call's would be
+                    if guard is not None:  # the loop is free while the part awaits: only its timeout bounds it
+                        timeout = self.current.timeout if self.current is not None else None
+                        guard.beat(math.inf if timeout is None else self.part_started + timeout)
+                    self._awaiting = step
                     result = await step
                 except BaseException as exc:
                     self._awaiting = None

@@ -139,7 +139,7 @@ def test_a_donkeycar_car_drives_unchanged_with_one_command(tmp_path):
     assert proc.returncode == 0, out
     # asyncdonkey's report, the car's own prints, and a prompt end (the web server stopped, not abandoned)
     assert "loops: 100 in" in out, out
-    assert "achieved:" in out and "stopped by: max_loop_count" in out, out
+    assert "achieved:" in out and "stopped by: loop limit reached (max_loop_count)" in out, out
     assert "You can now go to" in out
     assert "abandoned" not in out, out
     assert manage_py.read_bytes() == pristine

@@ -230,7 +230,8 @@ def test_a_car_drives_on_a_tflite_pilot_without_tensorflow(tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 0, out
-    assert "interpreter: TfLite (LiteRT, asyncdonkey)" in out and "stopped by: max_loop_count" in out, out
+    assert "interpreter: TfLite (LiteRT, asyncdonkey)" in out, out
+    assert "stopped by: loop limit reached (max_loop_count)" in out, out
     # beside Donkeycar's <hostname>.local line, the addresses of this machine's interfaces, .local last
     listed = out[out.index("LocalWebController (Donkeycar's), from a phone on the car's network:") :].splitlines()
     urls = [line.split()[0] for line in listed[1:] if line.startswith("  http://")]

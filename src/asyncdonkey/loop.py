@@ -48,6 +48,15 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
+#: How the summary says why a drive ended, for the reasons the loop sets itself (``DriveReport.stop_reason`` keeps
+#: the short names, which code compares against): "stop()" alone read as if someone had called it.
+_STOP_WORDS = {
+    "max_loop_count": "loop limit reached (max_loop_count)",
+    "duration": "time limit reached (duration)",
+    "stop()": "stop() called",
+}
+
+
 class Vehicle:
     """Runs parts in order, ``rate_hz`` times a second, passing values through :attr:`mem`.
 
@@ -486,7 +495,7 @@ class Vehicle:
         if report.longest_block_ms is not None:
             ms, part = report.longest_block_ms
             rows.append(("longest loop block", f"{ms:,.0f} ms by part {part!r}"))
-        rows.append(("stopped by", report.stop_reason))
+        rows.append(("stopped by", _STOP_WORDS.get(report.stop_reason, report.stop_reason)))
         return self.profiler.table(rows)
 
     def shutdown_deadline_s(self) -> float:

@@ -159,11 +159,19 @@ def parse_args(argv: list[str] | None) -> tuple[PiCarConfig, argparse.Namespace]
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--js", action="store_true", help="drive with the gamepad (USE_JOYSTICK_AS_DEFAULT)")
     which.add_argument("--web", action="store_true", help="drive from a browser (prints the URL with its token)")
+    parser.add_argument(
+        "--token-file",
+        metavar="PATH",
+        help="with --web: keep the access token in this file (made on first start, owner-only) so the phone's "
+        "bookmark survives restarts; default: a new token at every start",
+    )
     parser.add_argument("settings", nargs="*", metavar="NAME=VALUE", help="override a setting (Donkeycar names)")
     args = parser.parse_args(argv or [])
     cfg = PiCarConfig()
     for s in args.settings:
         cfg.override(s)
+    if args.token_file and not (args.web or (cfg.USE_JOYSTICK_AS_DEFAULT is False and not args.js)):
+        parser.error("--token-file is for the web controller: add --web")
     if args.camera == "none" and args.model:
         parser.error("--model needs a camera: the pilot drives from cam/image_array (use --camera opencv or picamera2)")
     if args.camera == "picamera2" and not isinstance(cfg.CAMERA_INDEX, int):
@@ -215,10 +223,17 @@ def build(
     # Without a pilot there is nobody to hand the wheel to: the mode stays "user".
     modes = DRIVE_MODES if args.model else ("user",)
     if args.web or (cfg.USE_JOYSTICK_AS_DEFAULT is False and not args.js):
-        from asyncdonkey.parts.web import WebController
+        from asyncdonkey.parts.web import NEW_TOKEN, WebController
+        from asyncdonkey.parts.web.auth import token_from_file
 
         web = WebController(
-            cfg.WEB_CONTROL_PORT, cfg.WEB_INIT_MODE, modes=modes, vehicle=v, steering=steering, throttle=throttle
+            cfg.WEB_CONTROL_PORT,
+            cfg.WEB_INIT_MODE,
+            modes=modes,
+            vehicle=v,
+            steering=steering,
+            throttle=throttle,
+            token=token_from_file(args.token_file) if args.token_file else NEW_TOKEN,
         )
         v.add(web, inputs=web.inputs, outputs=web.outputs, name="web")
     else:

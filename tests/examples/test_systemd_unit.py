@@ -50,6 +50,8 @@ def test_exec_start_runs_the_venvs_python_on_our_command_with_options_that_exist
     car_pi = load_example("car_pi")
     _, car_options = car_pi.parse_args(car_args)  # exits on an option car_pi does not have
     assert car_options.camera == "picamera2" and car_options.web
+    # the phone's bookmark survives reboots: the token is kept in a file in the service user's home
+    assert PurePosixPath(car_options.token_file).is_relative_to(PurePosixPath("/home") / service["User"])
 
 
 def test_the_setup_guide_installs_and_reads_this_unit():

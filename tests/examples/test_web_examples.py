@@ -68,7 +68,9 @@ async def test_pi_car_offers_web_or_gamepad(tmp_path):
     try:
         v = car_pi.build(["--js", *rig.argv("HAVE_IMU=false")], buses=rig.buses)
         assert not [e for e in v.parts if isinstance(e.part, WebController)]
-        v = car_pi.build(["--web", *rig.argv("WEB_CONTROL_PORT=0", "HAVE_IMU=false")], buses=rig.buses)
+        token_file = tmp_path / "web-token"
+        argv = ["--web", "--token-file", str(token_file), *rig.argv("WEB_CONTROL_PORT=0", "HAVE_IMU=false")]
+        v = car_pi.build(argv, buses=rig.buses)
         ctr = controller_of(v)
         assert ctr.modes == ("user",)  # no model: the page cannot hand the car to a pilot
         assert ctr.steering is not None and ctr.throttle_part is not None  # /calibrate has the PWM parts
@@ -79,6 +81,7 @@ async def test_pi_car_offers_web_or_gamepad(tmp_path):
         drive = asyncio.create_task(v.run(rate_hz=20))
         try:
             await wait_until(ctr.listening.is_set, 10, "the web controller")
+            assert ctr.token == token_file.read_text().strip()  # the token of every start, kept for the phone
             base = f"http://127.0.0.1:{ctr.port}"
             async with aiohttp.ClientSession(headers={"Authorization": f"Token {ctr.token}"}) as http:
                 async with http.post(base + "/drive", json={"drive_mode": "local"}) as r:

@@ -24,15 +24,26 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
+import os
 import secrets
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from urllib.parse import urlsplit
 
 from aiohttp import web
 
 from ...errors import AsyncdonkeyError
 
-__all__ = ["TOKEN_PARAM", "Access", "Sessions", "WebConfigError", "is_loopback", "new_token", "origin_allowed"]
+__all__ = [
+    "TOKEN_PARAM",
+    "Access",
+    "Sessions",
+    "WebConfigError",
+    "is_loopback",
+    "new_token",
+    "origin_allowed",
+    "token_from_file",
+]
 
 TOKEN_PARAM = "token"
 
@@ -46,6 +57,33 @@ class WebConfigError(AsyncdonkeyError, ValueError):
 def new_token() -> str:
     """A fresh random access token (128 bits, URL-safe)."""
     return secrets.token_urlsafe(16)
+
+
+def token_from_file(path: str | os.PathLike[str]) -> str:
+    """The token kept in ``path``, made (128 random bits, readable by its owner only) when the file does not exist.
+
+    A car started at boot by a service would otherwise have a new token at every start, and the phone that
+    drives it a dead bookmark after each reboot. The file holds the token alone; deleting it makes a new one at
+    the next start (which locks out every phone that had the old one). A file that exists but holds no usable
+    token is an error, never silently replaced: the user may be pointing at the wrong file.
+    """
+    p = Path(path)
+    try:
+        fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        token = p.read_text(encoding="utf-8").strip()
+        if len(token) < 8 or any(c.isspace() for c in token) or not token.isprintable():
+            raise WebConfigError(
+                f"web token file {str(p)!r}: expected one token of at least 8 printable characters without spaces"
+                " (delete the file to have a new one made)"
+            ) from None
+        return token
+    except FileNotFoundError:
+        raise WebConfigError(f"web token file {str(p)!r}: its folder {str(p.parent)!r} does not exist") from None
+    token = new_token()
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(token + "\n")
+    return token
 
 
 def is_loopback(host: str) -> bool:

@@ -343,3 +343,70 @@ def test_a_fleet_drives_on_one_server_and_stops_when_it_dies(tmp_path, frames, b
     assert flood_sent > 3 * car1_sent  # it did flood
     # the car of another CA was never commanded (its throttle never left "no command")
     assert reports["car9"]["commands"] == 0 and all(v is None for _, v in reports["car9"]["throttle_changes"])
+
+
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.asyncio
+async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_path):
+    """In one process, each on its own session with its own certificate: the server's rules keep each car to
+    its own keys (the router drops the rest before any car sees it); a view reads every car and commands none."""
+    from asyncdonkey.parts.zenoh import PILOT_COMMAND, PilotServer, ZenohLink, ZenohPublisher, ZenohSubscriber
+    from asyncdonkey.parts.zenoh.link import zenoh_config
+    from asyncdonkey.parts.zenoh.pairing import make_fleet
+
+    from .zenoh_loopback import free_port, until
+
+    files = make_fleet(
+        tmp_path, cars=["car1", "car2"], server="gpu", server_hosts=["127.0.0.1"], port=free_port(),
+        listen_host="127.0.0.1", views=["base"],
+    )  # fmt: skip
+    server = PilotServer(
+        lambda frames: [(0.1, 0.5)] * len(frames), ["car1", "car2"], config=zenoh_config(files.server_config)
+    )
+    serving = asyncio.ensure_future(server.serve())
+    car1 = ZenohLink("cars/car1", files.car_configs["car1"])
+    car2 = ZenohLink("cars/car2", files.car_configs["car2"])
+    view = ZenohLink("cars/car2", files.view_configs["base"])
+    cmd = ["pilot/angle", "pilot/throttle"]
+    try:
+        cam1, cam2 = ZenohPublisher(car1, ["cam/image_array"]), ZenohPublisher(car2, ["cam/image_array"])
+        sub1 = ZenohSubscriber(car1, cmd, group=PILOT_COMMAND)
+        sub2 = ZenohSubscriber(car2, cmd, group=PILOT_COMMAND)
+        # car1's session tries to watch car2's camera; the view does the same
+        spy = ZenohSubscriber(ZenohLink("cars/car2", session=car1.session), ["cam/image_array"], ping_every_s=0)
+        watcher = ZenohSubscriber(view, ["cam/image_array"], ping_every_s=0)
+        frame = np.zeros((120, 160, 3), np.uint8)
+
+        def drive() -> bool:
+            cam1.run(frame, 0.0)
+            cam2.run(frame, 0.0)
+            return sub1.received >= 5 and sub2.received >= 5 and watcher.received >= 5
+
+        assert await until(lambda: drive(), timeout=10)  # both cars drive on the server; the view watches car2
+        assert sub1.run() == (0.1, 0.5) and sub2.run() == (0.1, 0.5)
+        # the server stops answering; then car1 and the view command car2: full throttle, hard left
+        server.stop()
+        await serving
+        await asyncio.sleep(0.3)
+        taken = sub2.received
+        car1_as_car2 = ZenohPublisher(ZenohLink("cars/car2", session=car1.session), cmd, group=PILOT_COMMAND)
+        view_cmd = ZenohPublisher(view, cmd, group=PILOT_COMMAND)
+        for _ in range(25):
+            car1_as_car2.run(-1.0, 1.0, 0.0, 0.0)
+            view_cmd.run(-1.0, 1.0, 0.0, 0.0)
+            cam2.run(frame, 0.0)
+            await asyncio.sleep(0.02)
+        await asyncio.sleep(0.3)
+        assert sub2.received == taken and sub2.run() == (0.1, 0.5)  # nothing reached car2
+        assert spy.received == 0  # car1 never saw car2's frames
+        counters = server.counters()
+        assert counters["car1"]["answered"] >= 5 and counters["car2"]["answered"] >= 5
+        assert counters["car1"]["refused"] == 0
+    finally:
+        if not serving.done():
+            server.stop()
+            await serving
+        for link in (car1, car2, view):
+            link.close()
+        server.close()

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -345,6 +346,24 @@ def test_a_fleet_drives_on_one_server_and_stops_when_it_dies(tmp_path, frames, b
     assert reports["car9"]["commands"] == 0 and all(v is None for _, v in reports["car9"]["throttle_changes"])
 
 
+class ConstantModel:
+    """A model of the pilot's frame size that answers every frame with (0.1, 0.5)."""
+
+    pilot = types.SimpleNamespace(image_shape=(120, 160, 3))
+
+    def infer(self, frames):
+        return [(0.1, 0.5)] * len(frames)
+
+
+def test_the_server_refuses_a_session_where_anyone_could_send_a_cars_frames():
+    from asyncdonkey.parts.zenoh import PilotServer
+    from asyncdonkey.parts.zenoh.link import ZenohConfigError, zenoh_config
+
+    open_to_all = zenoh_config(mode="router", listen=["tcp/0.0.0.0:7447"], multicast_scouting=False)
+    with pytest.raises(ZenohConfigError, match=r"listens on tcp/0.0.0.0:7447 without TLS.*steers that car"):
+        PilotServer(ConstantModel(), ["car1"], config=open_to_all)  # refused before any socket is opened
+
+
 @pytest.mark.realtime
 @pytest.mark.network
 @pytest.mark.asyncio
@@ -361,9 +380,7 @@ async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_pat
         tmp_path, cars=["car1", "car2"], server="gpu", server_hosts=["127.0.0.1"], port=free_port(),
         listen_host="127.0.0.1", views=["base"],
     )  # fmt: skip
-    server = PilotServer(
-        lambda frames: [(0.1, 0.5)] * len(frames), ["car1", "car2"], config=zenoh_config(files.server_config)
-    )
+    server = PilotServer(ConstantModel(), ["car1", "car2"], config=zenoh_config(files.server_config))
     serving = asyncio.ensure_future(server.serve())
     car1 = ZenohLink("cars/car1", files.car_configs["car1"])
     car2 = ZenohLink("cars/car2", files.car_configs["car2"])
@@ -377,8 +394,10 @@ async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_pat
         spy = ZenohSubscriber(ZenohLink("cars/car2", session=car1.session), ["cam/image_array"], ping_every_s=0)
         watcher = ZenohSubscriber(view, ["cam/image_array"], ping_every_s=0)
         frame = np.zeros((120, 160, 3), np.uint8)
+        other_camera = np.zeros((60, 80, 3), np.uint8)  # car1 also sends frames of another size: dropped alone
 
         def drive() -> bool:
+            cam1.run(other_camera, 0.0)
             cam1.run(frame, 0.0)
             cam2.run(frame, 0.0)
             return sub1.received >= 5 and sub2.received >= 5 and watcher.received >= 5
@@ -402,7 +421,8 @@ async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_pat
         assert spy.received == 0  # car1 never saw car2's frames
         counters = server.counters()
         assert counters["car1"]["answered"] >= 5 and counters["car2"]["answered"] >= 5
-        assert counters["car1"]["refused"] == 0
+        assert counters["car1"]["refused"] == 0 and counters["car1"]["wrong_frames"] >= 5
+        assert counters["car2"]["wrong_frames"] == 0
     finally:
         if not serving.done():
             server.stop()

@@ -262,6 +262,12 @@ def _add_pilot_server(sub: Any) -> None:
     )
     ps.add_argument("--threads", type=int, help="the model runtime's compute threads (default: physical cores)")
     ps.add_argument(
+        "--insecure",
+        action="store_true",
+        help="serve even on a session others can publish to (whoever sends a car's frames steers it): an isolated"
+        " bench network only",
+    )
+    ps.add_argument(
         "--stats-every", type=float, default=5.0, help="print a line of counters every S seconds (0: never)"
     )
     ps.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (0: until Ctrl-C)")
@@ -290,6 +296,7 @@ def _cmd_pilot_server(args: argparse.Namespace) -> int:
             max_age_s=args.max_age_ms / 1e3,
             max_batch=args.max_batch,
             prefix=args.prefix,
+            insecure=args.insecure,
         )
     except (PilotModelError, ZenohConfigError, ValueError, OSError) as exc:
         print(f"asyncdonkey pilot-server: error: {exc}", file=sys.stderr)

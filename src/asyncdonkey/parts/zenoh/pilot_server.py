@@ -36,9 +36,13 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+
 from ...clock import get_clock
+from ...extras import require
+from ...ratelimit import LogThrottle
 from .batcher import BatchLoop, Frame, FrameBatcher
-from .link import ZenohLink, link_config
+from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
 
@@ -59,6 +63,7 @@ class _Car:
         self.frames = ZenohSubscriber(self.link, [CAMERA], ping_every_s=ping_every_s)
         self.commands = ZenohPublisher(self.link, list(COMMAND), group=PILOT_COMMAND)
         self.answered = 0
+        self.wrong_frames = 0
 
     def close(self) -> None:
         for part in (self.frames, self.commands):
@@ -83,6 +88,17 @@ class PilotServer:
         max_batch: the most frames per model call.
         prefix: the key prefix of a car, with ``{car}`` for its name.
         ping_every_s: round-trip measurement per car (keeps the frames' ages true; 0: never).
+        insecure: open the session even though others could publish to it (see below). For an isolated bench.
+
+    **Frames are commands.** Whoever can publish ``cars/car1/cam/image_array`` to the server chooses the frames
+    car1's command is computed from, and so steers car1. The server therefore refuses
+    (:class:`.ZenohConfigError`, naming why) to open a session that others can publish to
+    (:func:`.link.exposure`: plain TCP beyond loopback, multicast scouting, mutual TLS without access rules)
+    unless ``insecure=True``; the configs of ``zenoh-pair --fleet`` let each car publish its own keys only.
+
+    A frame that is not the model's ``image_shape`` uint8 RGB (``model.pilot.image_shape`` for a
+    :class:`.BatchPilot`) is dropped before it reaches a batch (counted in ``wrong_frames``, logged once per
+    5 s per car): one car with another camera must not cost the others their batch.
     """
 
     def __init__(
@@ -97,6 +113,7 @@ class PilotServer:
         max_batch: int = 32,
         prefix: str = "cars/{car}",
         ping_every_s: float = 0.5,
+        insecure: bool = False,
     ) -> None:
         names = list(dict.fromkeys(cars))
         if not names or isinstance(cars, str):
@@ -106,11 +123,11 @@ class PilotServer:
         self.model = model
         self.batcher = FrameBatcher(window_s=window_s, max_age_s=max_age_s, max_batch=max_batch)
         self.loop = BatchLoop(self.batcher, getattr(model, "infer", model), self._answer)
+        self.image_shape: tuple[int, ...] | None = getattr(getattr(model, "pilot", None), "image_shape", None)
+        self._log = LogThrottle(5.0)
         self._owned = session is None
         if session is None:
-            import zenoh
-
-            session = zenoh.open(link_config(config))
+            session = self._open(config, insecure)
         self.session = session
         self.cars: dict[str, _Car] = {}
         try:
@@ -120,9 +137,45 @@ class PilotServer:
             self.close()
             raise
 
+    @staticmethod
+    def _open(config: Any, insecure: bool) -> Any:
+        zenoh = require("zenoh", "zenoh", "the pilot server")
+        config = link_config(config)
+        why = exposure(config)
+        if why and not insecure:
+            raise ZenohConfigError(
+                f"PilotServer: refusing to serve on a session others can publish to: it {'; '.join(why)}, and"
+                " whoever sends a car's frames steers that car. Use the server config of `asyncdonkey zenoh-pair"
+                " --fleet` (mutual TLS and access rules), or listen on 127.0.0.1 only; on an isolated bench,"
+                " insecure=True (--insecure)."
+            )
+        if why:
+            logger.warning("pilot server: anyone who can reach this session can steer the cars (it %s)", "; ".join(why))
+        try:
+            return zenoh.open(config)
+        except Exception as exc:
+            raise ZenohConfigError(f"PilotServer: cannot open a Zenoh session: {exc}") from None
+
     # -- frames in (Zenoh's threads, handed to the loop) --------------------------------------------------
+    def _offer(self, car: str, image: Any, origin: float) -> None:
+        shape = self.image_shape
+        if shape is not None and (getattr(image, "shape", None) != shape or getattr(image, "dtype", None) != np.uint8):
+            entry = self.cars[car]
+            entry.wrong_frames += 1
+            if self._log.allow(car, get_clock().now()):
+                got = f"{image.shape} {image.dtype}" if isinstance(image, np.ndarray) else type(image).__name__
+                logger.warning(
+                    "pilot server: car %r sent a frame of %s; the model takes %s uint8 RGB: dropped (%d so far)",
+                    car,
+                    got,
+                    shape,
+                    entry.wrong_frames,
+                )
+            return
+        self.loop.offer(car, image, origin)
+
     def _push(self, car: str, loop: asyncio.AbstractEventLoop) -> Callable[[Any, float], None]:
-        offer = self.loop.offer
+        offer = self._offer
 
         def push(image: Any, origin: float) -> None:
             try:
@@ -176,13 +229,14 @@ class PilotServer:
         return self.loop.calls
 
     def counters(self) -> dict[str, dict[str, int]]:
-        """Per car: the batcher's counters plus ``answered`` (commands sent) and ``refused`` (frames the channel
-        contract refused)."""
+        """Per car: the batcher's counters plus ``answered`` (commands sent), ``refused`` (frames the channel
+        contract refused) and ``wrong_frames`` (not the model's frame size)."""
         out = self.batcher.counters()
         for name, car in self.cars.items():
             row = out.setdefault(name, {"frames": 0, "replaced": 0, "too_old": 0, "batched": 0})
             row["answered"] = car.answered
             row["refused"] = car.frames.counters()["refused"]
+            row["wrong_frames"] = car.wrong_frames
         return out
 
     def close(self) -> None:

@@ -63,7 +63,7 @@ async def test_two_cars_publish_status_and_the_view_shows_both():
         assert doc["lateness_p99_ms"] is not None and doc["overruns"] == 0
         assert cars["cars/bravo"][0]["mode"] == "user" and abs(cars["cars/bravo"][0]["hz"] - 20) < 3
         now = max(t for _, t in cars.values())
-        screen = render_fleet(cars, now)
+        screen = render_fleet(cars, now, width=200)  # the state and latency columns leave 120 too few for the ages
         lines = screen.splitlines()
         assert lines[0] == "asyncdonkey top - 2 cars seen, 2 live, 0 stale, 0 silent (sorted by name)"
         assert lines[1].split()[:4] == ["CAR", "STATE", "HZ", "LAT"]

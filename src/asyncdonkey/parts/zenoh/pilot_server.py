@@ -25,7 +25,8 @@ fresh. Who may command which car is the job of the fleet configs of ``asyncdonke
 (:mod:`.pairing`).
 
 Counters: :meth:`counters` per car (``frames``, ``replaced``, ``too_old``, ``batched``, ``answered``,
-``refused``) and :attr:`batch_sizes`, :attr:`infer_s` (recent model-call times), :attr:`calls`.
+``refused``, ``wrong_frames``) and :attr:`batch_sizes`, :attr:`infer_s` (the model's recent times per batch),
+:attr:`calls`.
 """
 
 from __future__ import annotations

@@ -289,7 +289,7 @@ def table(r: dict[str, Any]) -> str:
     lines.append("")
     lines.append(
         "saturates at: "
-        + ", ".join(f"{m.replace('_', ' ')} {v if v is not None else 'no count measured'}" for m, v in sat.items())
+        + ", ".join(f"{m.replace('_', ' ')} {v if v is not None else 'beyond the counts run'}" for m, v in sat.items())
     )
     w = r["wire"]
     lines.append(

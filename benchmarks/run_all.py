@@ -401,7 +401,8 @@ def fleet_rows(d: dict[str, Any]) -> list[Row]:
             rows.append((f"fleet {r.get('cars')} cars, {mode.replace('_', ' ')}", figure, cell, "", ""))
     sat = d.get("saturates_at") or {}
     if sat:
-        shown = ", ".join(f"{m.replace('_', ' ')} {v if v is not None else 'none measured'}" for m, v in sat.items())
+        beyond = "beyond the counts run"
+        shown = ", ".join(f"{m.replace('_', ' ')} {v if v is not None else beyond}" for m, v in sat.items())
         rows.append(("fleet", "car count at which the server saturates", shown, "", ""))
     return rows
 

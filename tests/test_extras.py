@@ -223,3 +223,12 @@ def test_train_example_says_what_to_install_before_training(tmp_path):
         "(onnx is not installed): pip install 'asyncdonkey[quantize]'"
     ]
     assert proc.stdout == ""  # nothing trained: it stopped before the minute of work
+
+
+def test_a_zenoh_link_built_in_a_program_without_the_extra_says_what_to_install(monkeypatch):
+    """Embedded in an application (no command to catch it), the link still raises the one-line error."""
+    from asyncdonkey.parts.zenoh import ZenohLink
+
+    monkeypatch.setitem(sys.modules, "zenoh", None)  # importing it now fails as a missing package does
+    with pytest.raises(MissingExtra, match=r"a Zenoh link needs the zenoh extra .*pip install 'asyncdonkey\[zenoh\]'"):
+        ZenohLink("cars/x")

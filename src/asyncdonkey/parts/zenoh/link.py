@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import AsyncdonkeyError
+from ...extras import require
 from .pairing import COMMAND_CHANNELS
 
 __all__ = ["LOOPBACK_LISTEN", "ZenohConfigError", "ZenohLink", "exposure", "link_config", "zenoh_config"]
@@ -70,7 +71,7 @@ def zenoh_config(
         multicast_scouting: turn UDP multicast discovery on or off (off in tests and on shared networks).
         extra: more ``path -> value`` settings (``"transport/link/tls/root_ca_certificate": "ca.pem"``).
     """
-    import zenoh
+    zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
     if config_file is not None:
         path = Path(config_file)
@@ -126,7 +127,7 @@ def link_config(config: Any = None) -> Any:
     says explicitly is kept, and judged by :func:`exposure`. (A ``zenoh.Config`` cannot be copied without
     losing the secrets it holds inline, so it is filled in place.)
     """
-    import zenoh
+    zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
     if config is None:
         config = zenoh.Config()
@@ -212,7 +213,7 @@ class ZenohLink:
         rtt_window: int = 16,
         insecure: bool = False,
     ) -> None:
-        import zenoh
+        zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
         prefix = prefix.strip("/")
         if not prefix or any(c in prefix for c in "*$?#"):

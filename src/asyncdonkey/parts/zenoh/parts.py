@@ -61,6 +61,7 @@ import numpy as np
 
 from ...clock import get_clock
 from ...contracts import REFUSED, Contract, Contracts, Gate, Kind
+from ...extras import require
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from .codec import NDARRAY, CodecError, decode, decode_group, encode, encode_group, pack_attachment, unpack_attachment
@@ -106,7 +107,7 @@ class ZenohPublisher:
         jpeg: Mapping[str, int] | None = None,
         group: str | None = None,
     ) -> None:
-        import zenoh
+        zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
         if isinstance(channels, str) or not channels:
             raise ValueError(f"ZenohPublisher: channels must be a non-empty list of names, got {channels!r}")
@@ -308,7 +309,7 @@ class ZenohSubscriber:
         group: str | None = None,
         contracts: Contracts | None = None,
     ) -> None:
-        import zenoh
+        zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
         if isinstance(channels, str) or not channels:
             raise ValueError(f"ZenohSubscriber: channels must be a non-empty list of names, got {channels!r}")

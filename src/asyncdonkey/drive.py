@@ -2,12 +2,14 @@
 
 A :class:`~asyncdonkey.loop.Vehicle` is the car's *definition* (its parts and channels) and can be driven
 again and again; everything that belongs to one run lives here and is made fresh each time: the clock, the
-profiler, error counts, the stop latch, the background tasks and ``update()`` threads, the watchdog, and the
-counters the report is made of. So a second run reports only itself, a ``stop()`` meant for one run cannot
-leak into another, and every ending (done, stopped, failed, cancelled) fills the same report.
+profiler, the stop latch, the background tasks and ``update()`` threads, the watchdog, the counters the report is
+made of, and for each part a :class:`~asyncdonkey.partrun.PartRun` (its error count, timing series, latency
+recorder, pipeline kicks, guard, checked stores). The vehicle's entries (the plan ``add()`` made) are only read.
+So a second run reports only itself and starts from the same plan, a ``stop()`` meant for one run cannot leak
+into another, and every ending (done, stopped, failed, cancelled) fills the same report.
 
-The tick (:meth:`Drive.tick_loop`) is flat: for each prepared entry, check its run condition, read its
-inputs, call it, store its outputs with their origins, record its time.
+The tick (:meth:`Drive.tick_loop`) is flat: for each part's run, check its run condition, read its inputs, call
+it, store its outputs with their origins, record its time.
 
 Timing goes into one row per tick of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline and the
 tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its run condition),
@@ -29,6 +31,7 @@ from .clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
 from .clock import TICK_GRID as _TICK_GRID
 from .errors import PartError, PartInterrupted
 from .memory import Memory
+from .partrun import PartRun
 from .pipeline import Guard, Reaction, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
@@ -69,7 +72,10 @@ class Drive:
         block_report_s: float,
         precise: bool = False,
     ) -> None:
+        #: the vehicle's parts as added (the plan: never written by the drive)
         self.entries = entries
+        #: each part's state for this drive, in the same order
+        self.runs = tuple(PartRun(e) for e in entries)
         self.mem = mem
         self.clock = clock
         self.loop = loop
@@ -93,8 +99,8 @@ class Drive:
         self.watchdog: Watchdog | None = None
         #: the safety process, heartbeaten once a tick (None: none runs)
         self.guard: SafetyProcess | None = None
-        # what the loop thread is doing (read by the watchdog thread)
-        self.current: Entry | None = None
+        # what the loop thread is doing (read by the watchdog thread): the run (or tick stand-in) being called
+        self.current: Any = None
         self.part_started = math.inf
         self._awaiting: Any = None
         self._grace_cancel = False
@@ -113,24 +119,23 @@ class Drive:
         #: parts whose shutdown() or update() thread did not finish in time (left running as daemon threads)
         self.abandoned: list[str] = []
         # pipelined parts (asyncdonkey.pipeline): the tick calls their kickers in their place
-        self.push_sources: list[tuple[Entry, Any, Reaction | None]] = []
+        self.push_sources: list[tuple[PartRun, Any, Reaction | None]] = []
         self._unsubscribe: list[Any] = []
-        #: checked mode: each wrapped entry's own stores, put back when the drive ends (:meth:`uncheck_outputs`)
-        self._plain_stores: list[tuple[Entry, Any, Any]] = []
         #: the parts more than one path can be inside at once, each kept to one call at a time (asyncdonkey.pipeline)
         self.guards: list[Guard] = []
-        self.tick_entries, self.pipelines = build_pipelines(self)
+        #: what each tick calls, in order: the parts' runs, a pipelined part's kicker or a guarded part's GuardedTick
+        #: in its place (``asyncdonkey.pipeline``)
+        self.tick_runs, self.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
-        self.table = table = TickTable(len(self.tick_entries), 1.0 / report.rate_hz, profiler.window)
+        self.table = table = TickTable(len(self.tick_runs), 1.0 / report.rate_hz, profiler.window)
         profiler.use_table(table)
-        # a guarded part sits in the tick as its GuardedTick: its column is found through the GuardedTick's entry
-        column = {id(getattr(e, "entry", e)): col for col, e in enumerate(self.tick_entries)}
-        for e in entries:
-            e.errors = 0
-            if e.pipelined:
-                e.series = profiler.series_for(e.name)
+        # a guarded part sits in the tick as its GuardedTick: its column is found through the GuardedTick's run
+        column = {id(getattr(t, "run", t)): col for col, t in enumerate(self.tick_runs)}
+        for r in self.runs:
+            if r.entry.pipelined:
+                r.series = profiler.series_for(r.name)
             else:
-                e.series = profiler.parts[e.name] = TableSeries(e.name, table, column[id(e)], skip_first=True)
+                r.series = profiler.parts[r.name] = TableSeries(r.name, table, column[id(r)], skip_first=True)
 
     # ----------------------------------------------------------------------------------------- executor
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:
@@ -142,27 +147,21 @@ class Drive:
 
     # ------------------------------------------------------------------------------------ checked mode
     def check_outputs(self, contracts: Contracts) -> int:
-        """Checked mode for this drive: every entry whose outputs have contracts stores through a check
-        (:func:`~asyncdonkey.plan.checked_store`); returns how many entries are checked.
+        """Checked mode for this drive: every part whose outputs have contracts stores through a check
+        (:func:`~asyncdonkey.plan.checked_store`); returns how many parts are checked.
 
-        Decided once, here, so the tick stays as it is: a checked entry simply has another ``store``. The
-        entries belong to the vehicle and outlive the drive, so their own stores are kept and put back by
-        :meth:`uncheck_outputs`.
+        Decided once, here, so the tick stays as it is: a checked part's run simply has another ``store``. Only
+        the runs change: the entries keep their own stores, and the next drive decides again.
         """
-        for e in self.entries:
-            store = checked_store(e.store, e.name, e.outputs, contracts)
-            fixed = checked_store(e.store_fixed, e.name, e.outputs, contracts)
-            if store is e.store and fixed is e.store_fixed:
+        checked = 0
+        for r in self.runs:
+            store = checked_store(r.store, r.name, r.outputs, contracts)
+            fixed = checked_store(r.store_fixed, r.name, r.outputs, contracts)
+            if store is r.store and fixed is r.store_fixed:
                 continue
-            self._plain_stores.append((e, e.store, e.store_fixed))
-            e.store, e.store_fixed = store, fixed
-        return len(self._plain_stores)
-
-    def uncheck_outputs(self) -> None:
-        """Give the entries their own stores back (the next drive decides again)."""
-        for e, store, fixed in self._plain_stores:
-            e.store, e.store_fixed = store, fixed
-        self._plain_stores.clear()
+            r.store, r.store_fixed = store, fixed
+            checked += 1
+        return checked
 
     # ---------------------------------------------------------------------------------------- stopping
     def request_stop(self, reason: str = "stop()") -> None:
@@ -216,27 +215,28 @@ class Drive:
         for e, subscribe, reaction in self.push_sources:
             if reaction is not None:
                 reaction.task = self.loop.create_task(reaction.main(), name=f"react:{e.name}")
-                self.tasks.append((e, reaction.task))
+                self.tasks.append((e.entry, reaction.task))
             self._unsubscribe.append(
                 subscribe(lambda value, origin, e=e, r=reaction: self._push_threadsafe(e, value, origin, r))
             )
-        for e in self.entries:
+        for r in self.runs:
+            e = r.entry
             if e.background is Background.THREAD:
-                t = threading.Thread(target=self._thread_main, args=(e,), name=f"part:{e.name}", daemon=True)
+                t = threading.Thread(target=self._thread_main, args=(r,), name=f"part:{e.name}", daemon=True)
                 self.threads.append((e, t))
                 t.start()
             elif e.background is Background.TASK:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
-                task.add_done_callback(lambda t, e=e: self._task_done(e, t))
+                task.add_done_callback(lambda t, r=r: self._task_done(r, t))
                 self.tasks.append((e, task))
 
-    def _push_threadsafe(self, e: Entry, value: Any, origin: float, reaction: Reaction | None) -> None:
+    def _push_threadsafe(self, e: PartRun, value: Any, origin: float, reaction: Reaction | None) -> None:
         try:
             self.loop.call_soon_threadsafe(self._pushed, e, value, origin, reaction)
         except RuntimeError:  # the loop has closed: the drive is over
             pass
 
-    def _pushed(self, e: Entry, value: Any, origin: float | None, reaction: Reaction | None) -> None:
+    def _pushed(self, e: PartRun, value: Any, origin: float | None, reaction: Reaction | None) -> None:
         """A push source has a new value: into Memory now (not at the next tick), then start what it triggers
         and run the react=True parts it feeds."""
         if not self.on or value is None or e.store_fixed is None:
@@ -259,23 +259,23 @@ class Drive:
                 unsubscribe()
         self._unsubscribe.clear()
 
-    def _thread_main(self, e: Entry) -> None:
+    def _thread_main(self, e: PartRun) -> None:
         try:
-            e.part.update()
+            e.entry.part.update()
         except Exception as exc:
             try:
                 self.loop.call_soon_threadsafe(self.background_failed, e, exc)
             except RuntimeError:
                 logger.error("part %r background update() failed after the drive ended: %r", e.name, exc)
 
-    def _task_done(self, e: Entry, task: asyncio.Task[Any]) -> None:
+    def _task_done(self, e: PartRun, task: asyncio.Task[Any]) -> None:
         if task.cancelled():
             return
         exc = task.exception()
         if exc is not None:
             self.background_failed(e, exc)
 
-    def background_failed(self, e: Entry, exc: BaseException, what: str = "background update()") -> None:
+    def background_failed(self, e: PartRun, exc: BaseException, what: str = "background update()") -> None:
         """A part's work beside the ticks failed (its ``update()``, a pipelined or reacting run, a push):
         ``on_error="continue"`` (or a drive already ending) logs, rate-limited; ``"stop"`` stops the car with a
         :class:`PartError` that ``Vehicle.run()`` raises."""
@@ -316,7 +316,7 @@ class Drive:
         """
         self.task = asyncio.current_task()
         ticks = self._ticks(rate_hz, max_loop_count, duration, verbose, report_every)
-        if any(e.awaits for e in self.tick_entries):
+        if any(e.awaits for e in self.tick_runs):
             await self._drive_from_task(ticks)
         else:
             await self._drive_from_timer(ticks, 1.0 / rate_hz)
@@ -330,7 +330,7 @@ class Drive:
         of the :class:`~asyncdonkey.profiler.TickTable` (module docstring). Only what every tick does is here, on
         fast locals bound once; what is decided once, or rare (a limit, a part cut short, verbose logs), is a method.
         """
-        now, entries, table = self.clock.now, self.tick_entries, self.table
+        now, entries, table = self.clock.now, self.tick_runs, self.table
         d, origins, dormant = self.mem.d, self.mem.origins, self.mem.dormant
         buf, window, ncol, commit = table.buf, table.window, table.ncol, table.commit
         part_failed, report_block, block_report_s = self._part_failed, self._report_block, self.block_report_s
@@ -436,7 +436,7 @@ class Drive:
             start = now()
         return start
 
-    def _cut_short(self, e: Entry, exc: asyncio.CancelledError | PartInterrupted) -> float:
+    def _cut_short(self, e: PartRun, exc: asyncio.CancelledError | PartInterrupted) -> float:
         """Part ``e`` was cut short by a stop request's grace: cancelled at its await, or interrupted inside its
         sync call. The part failed (counted, an interruption logged), the stop goes on. Returns its end time.
 
@@ -536,7 +536,7 @@ class Drive:
         finally:
             ticks.close()
 
-    def _part_failed(self, e: Entry, tick: int, exc: Exception, now: float) -> None:
+    def _part_failed(self, e: PartRun, tick: int, exc: Exception, now: float) -> None:
         e.errors += 1
         err = PartError(e.name, tick, f"{type(exc).__name__}: {exc}")
         if e.on_error == "stop":
@@ -546,7 +546,7 @@ class Drive:
         if more is not None:
             logger.error("%s; continuing (on_error='continue')%s", err, more, exc_info=exc)
 
-    def _report_block(self, e: Entry, blocked: float, now: float) -> None:
+    def _report_block(self, e: PartRun, blocked: float, now: float) -> None:
         """A sync part held the loop thread past the failsafe window: name it (the watchdog covered the car)."""
         if self.longest_block is None or blocked > self.longest_block[0]:
             self.longest_block = (blocked, e.name)
@@ -574,7 +574,7 @@ class Drive:
         r.lateness_ms = stats["loop"]["lateness"] or {}
         r.overrun_ms = stats["loop"]["overrun"] or {}
         r.latency_ms = {name: s for name, s in stats["latency"].items() if s is not None}
-        r.part_errors = {e.name: e.errors for e in self.entries if e.errors}
+        r.part_errors = {p.name: p.errors for p in self.runs if p.errors}
         if self.watchdog is not None:
             r.watchdog_events = self.watchdog.events
             r.watchdog_failed_attempts = self.watchdog.failed_attempts

@@ -216,7 +216,7 @@ class Vehicle:
             trigger,
             react,
         )
-        e.series = self.profiler.series_for(e.name)
+        self.profiler.series_for(e.name)  # listed in the profiler from now on, before any drive
         self.parts.append(e)
         logger.debug("added part %s inputs=%s outputs=%s", e.name, e.inputs, e.outputs)
 
@@ -310,7 +310,6 @@ class Vehicle:
             cancelled = await shutdown_drive(drive)
         finally:
             self._detach_actuators(drive)
-            drive.uncheck_outputs()
             drive.fill_report()
             self.last_report = report
             self._drive = None
@@ -397,16 +396,18 @@ class Vehicle:
         return guard
 
     def _attach_actuators(self, drive: Drive) -> None:
-        """Give each actuator its latency recorder, and start the watchdog on a real loop."""
-        actuators = [e for e in drive.entries if e.actuator]
+        """Give each actuator its latency recorder (on the part, or on its run for this drive), and start the
+        watchdog on a real loop."""
+        actuators = [r for r in drive.runs if r.entry.actuator]
         if not actuators:
             return
-        guarded = watched(actuators)
+        guarded = watched(r.entry for r in actuators)
         if guarded and not drive.clock.is_virtual:
             drive.watchdog = Watchdog(drive, guarded, drive.clock.now)
         guard = drive.guard
         slot = {o.name: i for i, o in enumerate(guard.outputs)} if guard is not None else {}
-        for e in actuators:
+        for r in actuators:
+            e = r.entry
             record = latency_recorder(drive.profiler, e.name)
             attach = getattr(e.part, "attach", None)
             if callable(attach):
@@ -416,7 +417,7 @@ class Vehicle:
                 else:
                     attach(ActuatorRuntime(record, drive.watchdog))
             else:
-                e.latency = _run_end_latency(record, self.mem.origins, e)
+                r.latency = _run_end_latency(record, self.mem.origins, e)
         if drive.watchdog is not None:
             drive.watchdog.start()
 
@@ -428,7 +429,6 @@ class Vehicle:
         for e in drive.entries:
             if not e.actuator:
                 continue
-            e.latency = None
             attach = getattr(e.part, "attach", None)
             if callable(attach):
                 attach(None)

@@ -60,7 +60,7 @@ from .errors import PartTimeoutError
 from .plan import with_timeout
 
 if TYPE_CHECKING:
-    from .plan import Entry
+    from .partrun import PartRun
     from .runtypes import PipelineHost
 
 __all__ = ["Guard", "GuardedTick", "Pipeline", "TickKicker", "build_pipelines", "needs_guard"]
@@ -71,12 +71,13 @@ logger = logging.getLogger("asyncdonkey.loop")
 class Pipeline:
     """One pipelined part's worker task, its start requests and its counters."""
 
-    def __init__(self, drive: PipelineHost, entry: Entry, react: list[Entry]) -> None:
+    def __init__(self, drive: PipelineHost, run: PartRun, react: list[PartRun]) -> None:
         self.drive = drive
-        self.entry = entry
+        self.run = run
+        self.entry = run.entry
         self.react = react
-        self.name = entry.name
-        self.trigger = entry.trigger
+        self.name = run.name
+        self.trigger = run.entry.trigger
         self._kick = asyncio.Event()
         self.busy = False
         self.runs = 0
@@ -103,11 +104,11 @@ class Pipeline:
     # ----------------------------------------------------------------------------------------- worker
     async def main(self) -> None:
         drive = self.drive
-        e = self.entry
+        e = self.run
         d = drive.mem.d
         now = drive.clock.now
         series = e.series
-        stated = getattr(e.part, "output_origin", None)
+        stated = getattr(e.entry.part, "output_origin", None)
         stated = stated if callable(stated) else None
         while True:
             await self._kick.wait()
@@ -139,7 +140,7 @@ class Pipeline:
     async def _run_once(self, t: float, stated: Callable[[], float | None] | None) -> tuple[float, bool]:
         """One run on the newest inputs: ``(its end, whether it published)``. A guarded part (an executor part with
         a timeout) is entered through its guard first: a thread its last call's timeout left running keeps it."""
-        e = self.entry
+        e = self.run
         guard = e.guard
         if guard is not None and not await guard.enter():
             return self.drive.clock.now(), False  # (only this worker calls it: never coalesced)
@@ -165,8 +166,8 @@ class Pipeline:
     async def _react(self, t: float) -> None:
         await run_reactions(self.drive, self.react, self._failed)
 
-    def _failed(self, e: Entry, exc: Exception) -> None:
-        self.drive.background_failed(e, exc, "pipelined run()" if e is self.entry else "reacting run()")
+    def _failed(self, e: PartRun, exc: Exception) -> None:
+        self.drive.background_failed(e, exc, "pipelined run()" if e is self.run else "reacting run()")
 
     def stats(self, elapsed: float) -> dict[str, float]:
         span = self.last_start - self.first_start if self.first_start is not None else 0.0
@@ -178,7 +179,9 @@ class Pipeline:
         }
 
 
-async def run_reactions(drive: PipelineHost, entries: list[Entry], failed: Callable[[Entry, Exception], None]) -> None:
+async def run_reactions(
+    drive: PipelineHost, entries: list[PartRun], failed: Callable[[PartRun, Exception], None]
+) -> None:
     """Run the ``react=True`` parts ``entries`` now, in their add() order (after a pipelined part or a push
     source published): a new command reaches the actuators without waiting for the next tick."""
     d = drive.mem.d
@@ -213,7 +216,7 @@ class Reaction:
     """The ``react=True`` parts downstream of a push source, run in a task of their own each time it pushes
     (a start requested while they run is served once more, with the newest values, never queued)."""
 
-    def __init__(self, drive: PipelineHost, entries: list[Entry]) -> None:
+    def __init__(self, drive: PipelineHost, entries: list[PartRun]) -> None:
         self.drive = drive
         self.entries = entries
         self._kick = asyncio.Event()
@@ -240,12 +243,12 @@ class Reaction:
             await run_reactions(drive, self.entries, lambda e, exc: drive.background_failed(e, exc, "reacting run()"))
 
 
-def react_chain(entries: tuple[Entry, ...], channels: set[str]) -> list[Entry]:
-    """The ``react=True`` entries fed, directly or through each other, by ``channels``, in add() order."""
-    chain: list[Entry] = []
+def react_chain(runs: tuple[PartRun, ...], channels: set[str]) -> list[PartRun]:
+    """The ``react=True`` parts fed, directly or through each other, by ``channels``, in add() order."""
+    chain: list[PartRun] = []
     channels = set(channels)
-    for r in entries:
-        if r.react and channels.intersection(i for i in r.inputs if i is not None):
+    for r in runs:
+        if r.entry.react and channels.intersection(i for i in r.inputs if i is not None):
             chain.append(r)
             channels.update(r.outputs)
     return chain
@@ -272,7 +275,7 @@ class TickKicker:
     )
 
     def __init__(self, pipeline: Pipeline) -> None:
-        e = pipeline.entry
+        e = pipeline.run
         self.name = e.name
         self.run_condition = e.run_condition
         self.outputs = e.outputs
@@ -297,8 +300,8 @@ def _nothing() -> None:
 
 
 # ------------------------------------------------------------------------------------ one call at a time
-def needs_guard(e: Entry, reacting: set[int]) -> bool:
-    """Whether two calls of ``e`` could be inside it at once (``reacting``: ids of the entries some reaction runs).
+def needs_guard(e: PartRun, reacting: set[int]) -> bool:
+    """Whether two calls of ``e`` could be inside it at once (``reacting``: ids of the parts some reaction runs).
 
     Only a call that yields can be caught inside: an awaited one (``async run()``, or a sync one in a worker
     thread). So: an awaited part that reactions run besides the tick, and an executor part with a timeout, whose
@@ -308,7 +311,7 @@ def needs_guard(e: Entry, reacting: set[int]) -> bool:
     """
     if e.awaits and id(e) in reacting:
         return True
-    return e.executor and e.timeout is not None
+    return e.entry.executor and e.timeout is not None
 
 
 class Guard:
@@ -332,14 +335,14 @@ class Guard:
         "busy",
         "call",
         "coalesced",
-        "entry",
         "name",
+        "run",
         "waited",
     )
 
-    def __init__(self, drive: PipelineHost, entry: Entry) -> None:
-        self.entry = entry
-        self.name = entry.name
+    def __init__(self, drive: PipelineHost, run: PartRun) -> None:
+        self.run = run
+        self.name = run.name
         self.busy = False
         #: calls that found it running and waited for that call to end, then ran it
         self.waited = 0
@@ -353,8 +356,8 @@ class Guard:
         self._loop = drive.loop
         self._now = drive.clock.now
         self._origins = drive.mem.origins
-        self._timeout = entry.timeout
-        self.call: Callable[..., Awaitable[Any]] = self._thread_call(drive) if entry.executor else entry.call
+        self._timeout = run.timeout
+        self.call: Callable[..., Awaitable[Any]] = self._thread_call(drive) if run.entry.executor else run.call
 
     # -------------------------------------------------------------------------------------- entering
     async def enter(self) -> bool:
@@ -447,7 +450,7 @@ class Guard:
         else:  # enter()'s free case, inlined: this runs on every tick of a guarded part
             self.busy = True
             self._holds = 1
-        e = self.entry
+        e = self.run
         try:
             args = e.args()
             r = await self.call(*args)
@@ -466,7 +469,7 @@ class Guard:
         A caller that stops waiting (a timeout, a cancellation) does not stop the thread: the part is let go when
         the thread returns, or at once if the call had not started (it then never will).
         """
-        fn, loop, executor = self.entry.fn, self._loop, drive.get_executor
+        fn, loop, executor = self.run.entry.fn, self._loop, drive.get_executor
         lock = threading.Lock()
 
         def claimed(state: list[str], args: tuple[Any, ...]) -> Any:
@@ -516,20 +519,20 @@ class GuardedTick:
         "args",
         "awaits",
         "call",
-        "entry",
         "inputs",
         "is_sync_inline",
         "kicks",
         "name",
         "on_error",
         "outputs",
+        "run",
         "run_condition",
         "store",
         "timeout",
     )
 
     def __init__(self, guard: Guard) -> None:
-        e = self.entry = guard.entry
+        e = self.run = guard.run
         self.name = e.name
         self.run_condition = e.run_condition
         self.outputs = e.outputs
@@ -545,29 +548,30 @@ class GuardedTick:
 
     @property
     def latency(self) -> Callable[[float], None] | None:
-        return self.entry.latency  # attached to the entry once the drive has started
+        return self.run.latency  # attached to the part's run once the drive has started
 
     @property
     def errors(self) -> int:
-        return self.entry.errors
+        return self.run.errors
 
     @errors.setter
     def errors(self, n: int) -> None:
-        self.entry.errors = n
+        self.run.errors = n
 
 
 def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline]]:
-    """The tick's entry list (pipelined parts replaced by their kickers) and the drive's pipelines.
+    """The tick's list (the drive's :class:`~asyncdonkey.partrun.PartRun` of each part, pipelined parts replaced by
+    their kickers) and the drive's pipelines.
 
-    Also wires the triggers: entries whose outputs feed a trigger get ``kicks`` (checked after their store), and
+    Also wires the triggers: parts whose outputs feed a trigger get ``kicks`` (checked after their store), and
     push sources (parts with ``subscribe``) feeding a trigger or ``react=True`` parts are subscribed for the
-    drive.
+    drive. All of it on the runs: the vehicle's entries (its plan) are only read.
     """
-    entries = drive.entries
+    entries = drive.runs
     pipelines: list[Pipeline] = []
     tick: list[Any] = []
     for e in entries:
-        if not e.pipelined:
+        if not e.entry.pipelined:
             tick.append(e)
             continue
         p = Pipeline(drive, e, react_chain(entries, set(e.outputs)))
@@ -578,12 +582,11 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
         if p.trigger is not None:
             by_trigger.setdefault(p.trigger, []).append(p)
     for e in entries:
-        e.kicks = ()
-        if e.pipelined:
+        if e.entry.pipelined:
             continue
         fed = [(k, p) for k in e.outputs for p in by_trigger.get(k, ())]
         e.kicks = tuple(fed)
-        sub = getattr(e.part, "subscribe", None)
+        sub = getattr(e.entry.part, "subscribe", None)
         if not callable(sub) or not e.outputs:
             continue
         # a push source: its values go into Memory as they arrive, starting what they trigger and running the
@@ -596,14 +599,14 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
 
 
 def guard_entries(drive: PipelineHost, tick: list[Any], pipelines: list[Pipeline]) -> None:
-    """Give each entry that needs one a fresh :class:`Guard` (every other entry ``None``), and put a
+    """Give each part's run that needs one a fresh :class:`Guard` (every other ``None``), and put a
     :class:`GuardedTick` in a guarded part's place in the tick."""
     reacting = {id(r) for p in pipelines for r in p.react}
     reacting.update(
         id(r) for _e, _sub, reaction in drive.push_sources if reaction is not None for r in reaction.entries
     )
     drive.guards = []
-    for e in drive.entries:
+    for e in drive.runs:
         e.guard = Guard(drive, e) if needs_guard(e, reacting) else None
         if e.guard is not None:
             drive.guards.append(e.guard)

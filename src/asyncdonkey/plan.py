@@ -1,7 +1,8 @@
 """How one part is called each tick, decided once when it is added (``Vehicle.add``).
 
 Everything a tick needs about a part is worked out here, so the tick itself only walks a list of prepared
-:class:`Entry` objects: no per-tick ``hasattr``/``isinstance``. That includes where the values it returns get
+:class:`Entry` objects (as each drive's :class:`~asyncdonkey.partrun.PartRun` holds them): no per-tick
+``hasattr``/``isinstance``. That includes where the values it returns get
 their *origin* (the time of the sensing behind them), the provenance rule:
 
 * a part that states its own origin (``output_origin()``: a camera, a sensor poller, a controller, a network
@@ -84,7 +85,11 @@ def background_of(threaded: bool, async_update: bool) -> Background:
 
 
 class Entry:
-    """One part as the tick sees it. Everything except the per-run fields is fixed at ``add()``."""
+    """One part as ``add()`` planned it: how to call it, read its inputs and store its outputs.
+
+    Fixed at ``add()`` and never written while the car drives: a drive keeps what it learns about a part (errors,
+    timings, latency recorder, pipeline kicks, guard, checked stores) in a
+    :class:`~asyncdonkey.partrun.PartRun` of its own, so the next drive starts from the same plan."""
 
     __slots__ = (
         "actuator",
@@ -92,15 +97,11 @@ class Entry:
         "awaits",
         "background",
         "call",
-        "errors",
         "executor",
         "fn",
-        "guard",
         "input_origin",
         "inputs",
         "is_sync_inline",
-        "kicks",
-        "latency",
         "name",
         "on_error",
         "outputs",
@@ -108,7 +109,6 @@ class Entry:
         "pipelined",
         "react",
         "run_condition",
-        "series",
         "shutdown_fn",
         "shutdown_takes_timeout",
         "shutdown_timeout",
@@ -119,13 +119,7 @@ class Entry:
     )
 
     def __init__(self) -> None:
-        self.errors = 0
-        self.series: Any = None
-        #: set per run for an actuator the loop measures itself: ``latency(run end)`` (minus its command's origin)
-        self.latency: Callable[[float], None] | None = None
         self.pipelined = False
-        #: per run: (channel, pipeline) pairs this entry's outputs trigger (see ``asyncdonkey.pipeline``)
-        self.kicks: tuple[Any, ...] = ()
         self.trigger: str | None = None
         self.react = False
         #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them; ``None``
@@ -133,9 +127,6 @@ class Entry:
         #: with a given origin (the inputs may have moved on meanwhile)
         self.input_origin: Callable[[], float] | None = None
         self.store_fixed: Callable[[Any, float, float], None] | None = None
-        #: per run: the part's :class:`~asyncdonkey.pipeline.Guard` when more than one path can be inside its call
-        #: at once (decided when the drive starts, ``asyncdonkey.pipeline.needs_guard``), else ``None``
-        self.guard: Any = None
 
 
 def build_entry(

@@ -51,9 +51,10 @@ class ShutdownScope(Protocol):
 
 
 class PipelineHost(Protocol):
-    """What the pipelines and reactions use of the drive they run beside."""
+    """What the pipelines and reactions use of the drive they run beside (``runs``: each part's
+    :class:`~asyncdonkey.partrun.PartRun` for this drive, in add() order)."""
 
-    entries: Sequence[Any]
+    runs: Sequence[Any]
     loop: asyncio.AbstractEventLoop
     clock: Any
     mem: Any

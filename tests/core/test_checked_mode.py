@@ -199,7 +199,8 @@ async def test_wrapping_is_decided_at_drive_start_only_for_entries_with_contract
 
     class Look:
         def run(self):
-            seen["stores"] = [e.store for e in v.parts]
+            seen["stores"] = [r.store for r in v.drive.runs]
+            seen["planned"] = [e.store for e in v.parts]
 
     v = Vehicle(checked=True)
     v.add(Source(0.1), outputs=["throttle"], name="pilot")
@@ -210,7 +211,8 @@ async def test_wrapping_is_decided_at_drive_start_only_for_entries_with_contract
     assert report.checked and report.checked_parts == 1
     assert seen["stores"][0] is not own[0]  # checked: a store behind a check
     assert seen["stores"][1] is own[1] and seen["stores"][2] is None  # nothing to check: untouched
-    assert [e.store for e in v.parts] == own  # the vehicle's entries get their own stores back
+    assert seen["planned"] == own  # only the drive's runs are checked: the vehicle's entries keep their stores
+    assert [e.store for e in v.parts] == own
 
     report = await v.run(20, 1, checked=False)
     assert not report.checked and seen["stores"] == own

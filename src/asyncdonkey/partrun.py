@@ -1,0 +1,81 @@
+"""One part in one drive: what a run keeps about a part, apart from the plan ``Vehicle.add()`` made.
+
+A :class:`~asyncdonkey.plan.Entry` is the plan decided at ``add()`` and belongs to the vehicle, which can be
+driven again and again; nothing writes it while a car drives. Everything a drive learns or decides about a part
+lives in its :class:`PartRun`, made fresh when the drive starts and dropped when it ends: the errors counted, the
+timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs trigger, the guard
+that keeps it to one call at a time, and in checked mode its stores with their contract checks. So a second run
+starts from the plan as added, and a drive cannot change what the next one does.
+
+Why it also holds copies of the plan's fields the tick reads (``run_condition``, ``args``, ``call``, ...): the tick
+walks one list of these objects and reads each field with one attribute lookup, as it did when they were all on
+the entry; a run that read the plan through ``run.entry`` would pay a second lookup per field per part per tick.
+The copies are the plan's own objects, never changed, except ``store``/``store_fixed``, which checked mode wraps
+for this drive only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .plan import Entry
+
+__all__ = ["PartRun"]
+
+
+class PartRun:
+    """A part as one drive runs it: the per-run state, beside the plan fields the paths that call it read."""
+
+    __slots__ = (
+        "args",
+        "awaits",
+        "call",
+        "entry",
+        "errors",
+        "guard",
+        "input_origin",
+        "inputs",
+        "is_sync_inline",
+        "kicks",
+        "latency",
+        "name",
+        "on_error",
+        "outputs",
+        "run_condition",
+        "series",
+        "store",
+        "store_fixed",
+        "timeout",
+    )
+
+    def __init__(self, entry: Entry) -> None:
+        #: the plan this run follows (read-only here)
+        self.entry = entry
+        # the plan's fields each call reads, copied once (module docstring)
+        self.name = entry.name
+        self.inputs = entry.inputs
+        self.outputs = entry.outputs
+        self.run_condition = entry.run_condition
+        self.on_error = entry.on_error
+        self.timeout = entry.timeout
+        self.args = entry.args
+        self.call = entry.call
+        self.awaits = entry.awaits
+        self.is_sync_inline = entry.is_sync_inline
+        self.input_origin = entry.input_origin
+        #: the output stores: the plan's, or (checked mode) wrapped in this drive's contract checks
+        self.store: Callable[[Any, Any, float], None] | None = entry.store
+        self.store_fixed: Callable[[Any, float, float], None] | None = entry.store_fixed
+        # what this run keeps
+        #: errors caught (``on_error="continue"``) or that stopped the drive, for ``DriveReport.part_errors``
+        self.errors = 0
+        #: the profiler's timing series of the part's calls (a column of the tick table, or a pipelined part's runs)
+        self.series: Any = None
+        #: an actuator the loop measures itself: ``latency(run end)`` records its sensing-to-actuation latency
+        self.latency: Callable[[float], None] | None = None
+        #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.pipeline``)
+        self.kicks: tuple[Any, ...] = ()
+        #: its :class:`~asyncdonkey.pipeline.Guard` when more than one path can be inside its call at once
+        self.guard: Any = None

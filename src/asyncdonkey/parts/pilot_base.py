@@ -336,6 +336,26 @@ class PilotBase:
         self.inferences += 1
         return _clip(angle), _clip(throttle)
 
+    def batch_commands(self, raw: Sequence[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The raw outputs of one model call on ``n`` frames → ``(angles, throttles)``, float64 arrays of ``n``.
+
+        The outputs are read exactly as :meth:`predict` reads one frame's (the output plan found at load time,
+        dequantization, the throttle/angle order, the default throttle of an angle-only model), so a server that
+        infers many cars' frames in one call answers each car as this pilot would alone. Values are not clipped
+        and NaN is kept: the caller decides what a NaN frame gets.
+        """
+        cols = [np.asarray(o, dtype=np.float64).reshape(n, -1) for o in raw]
+        for k, d in enumerate(self._dequant):
+            if d is not None:
+                cols[k] = (cols[k] - d[1]) * d[0]
+        plan = self._output_plan
+        if plan == "pair":
+            return cols[0][:, 0], cols[0][:, 1]
+        if plan == "two":
+            angles, throttles = cols[0][:, 0], cols[1][:, 0]
+            return (throttles, angles) if self._swap else (angles, throttles)
+        return cols[0][:, 0], np.full(n, self.default_throttle, np.float64)
+
     async def run(self, image: np.ndarray | None) -> tuple[float | None, float | None]:
         """The drive-loop entry: ``(angle, throttle)`` for the frame, ``(None, None)`` before the first frame.
 

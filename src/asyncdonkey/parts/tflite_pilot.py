@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -92,6 +93,7 @@ class TflitePilot(PilotBase):
         super().__init__(model_path, offload=offload, name=name, image_shape=image_shape)
         self.num_threads = inference_threads(num_threads, self.name, "num_threads")
         self._lock = threading.Lock()
+        self._batch = 1  # the input's batch size now (infer_batch resizes it)
         self.interpreter = self._load()
         inputs = self.interpreter.get_input_details()
         outputs = self._ordered_outputs()
@@ -159,9 +161,37 @@ class TflitePilot(PilotBase):
     def _infer(self, image: np.ndarray) -> list[np.ndarray]:
         interp = self.interpreter
         with self._lock:
+            if self._batch != 1:  # after infer_batch: back to one frame
+                self._resize(1)
             view = interp.tensor(self._input_index)()  # the interpreter's own input buffer
             self.encoder.encode(image, view[0])
             del view  # no reference may outlive the write: invoke() refuses to run while one does
+            interp.invoke()
+            return [interp.get_tensor(i) for i in self._output_indices]
+
+    def _resize(self, n: int) -> None:
+        interp = self.interpreter
+        shape = [int(d) for d in interp.get_input_details()[0]["shape"]]
+        interp.resize_tensor_input(self._input_index, [n, *shape[1:]])
+        interp.allocate_tensors()
+        self._batch = n
+
+    def infer_batch(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """The model's raw outputs for several frames in one call (the input resized to their number).
+
+        For a model whose batch dimension is dynamic (``input_info.shape[0]`` is ``None``): a pilot server infers
+        many cars' frames at once (read them with :meth:`batch_commands`). Resizing reallocates the
+        interpreter's tensors, so it happens only when the number of frames changes. Frames are not checked here.
+        """
+        interp = self.interpreter
+        n = len(images)
+        with self._lock:
+            if n != self._batch:
+                self._resize(n)
+            view = interp.tensor(self._input_index)()
+            for k, img in enumerate(images):
+                self.encoder.encode(img, view[k])
+            del view  # invoke() refuses to run while a view of its buffers is alive
             interp.invoke()
             return [interp.get_tensor(i) for i in self._output_indices]
 

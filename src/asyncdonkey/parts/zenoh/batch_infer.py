@@ -25,7 +25,6 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -69,7 +68,6 @@ class BatchPilot:
         self.batched = not isinstance(batch_dim, int)
         self.calls = 0
         self.frames = 0
-        self._size = 1  # the TFLite input's current batch size
         self._session = getattr(self.pilot, "session", None)
         if gpu:
             self._use_gpu()
@@ -143,38 +141,11 @@ class BatchPilot:
         return self._session.run(None, {p.input_info.name: buf})  # type: ignore[union-attr]
 
     def _run_tflite(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
-        p: Any = self.pilot
-        interp = p.interpreter
-        n = len(images)
-        with p._lock:
-            if n != self._size:
-                shape = [int(d) for d in interp.get_input_details()[0]["shape"]]
-                interp.resize_tensor_input(p._input_index, [n, *shape[1:]])
-                interp.allocate_tensors()
-                self._size = n
-            view = interp.tensor(p._input_index)()
-            for k, img in enumerate(images):
-                p.encoder.encode(img, view[k])
-            del view  # invoke() refuses to run while a view of its buffers is alive
-            interp.invoke()
-            return [interp.get_tensor(i) for i in p._output_indices]
+        return self.pilot.infer_batch(images)  # type: ignore[attr-defined]
 
     def _commands(self, raw: list[np.ndarray], n: int) -> list[tuple[float, float] | None]:
-        """The batch's raw outputs → one command per frame, read as the pilot reads its own (PilotBase)."""
-        p: Any = self.pilot
-        plan, dq = p._output_plan, p._dequant
-        cols = [np.asarray(o, dtype=np.float64).reshape(n, -1) for o in raw]
-        for k, d in enumerate(dq):
-            if d is not None:
-                cols[k] = (cols[k] - d[1]) * d[0]
-        if plan == "pair":
-            angles, throttles = cols[0][:, 0], cols[0][:, 1]
-        elif plan == "two":
-            angles, throttles = cols[0][:, 0], cols[1][:, 0]
-            if p._swap:
-                angles, throttles = throttles, angles
-        else:
-            angles, throttles = cols[0][:, 0], np.full(n, p.default_throttle, np.float64)
+        """The batch's raw outputs → one command per frame, read as the pilot reads its own."""
+        angles, throttles = self.pilot.batch_commands(raw, n)
         out: list[tuple[float, float] | None] = []
         for a, t in zip(angles.tolist(), throttles.tolist(), strict=True):
             if math.isnan(a) or math.isnan(t):

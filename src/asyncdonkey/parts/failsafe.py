@@ -27,7 +27,13 @@ logger = logging.getLogger(__name__)
 
 
 class StaleCommandStop:
-    """``run(command, age) -> command``, or ``stopped`` once ``age >= max_age_s`` (``None`` age: never written)."""
+    """``run(command, age) -> command``, or ``stopped`` once ``age >= max_age_s`` (``None`` age: never written).
+
+    An event (counted in ``events``, logged rate-limited) is a stale command that would have moved the car being
+    held back. A stale command that already is ``stopped`` (a controller that has sent nothing but neutral since
+    start-up, before anyone connected) is passed on as it is and is no event: nothing was stopped, and a warning
+    at every start-up would teach users to ignore the one that matters.
+    """
 
     def __init__(self, max_age_s: float = 0.25, *, stopped: float = 0.0, name: str = "throttle") -> None:
         if not (isinstance(max_age_s, int | float) and max_age_s > 0 and math.isfinite(max_age_s)):
@@ -35,15 +41,16 @@ class StaleCommandStop:
         self.max_age_s = float(max_age_s)
         self.stopped = stopped
         self.name = name
-        self.active = False
+        self.active = False  # a stale command that would move the car is being held back
         self.events = 0
         self._log = LogThrottle(1.0)
 
     def run(self, command: Any, age: float | None) -> Any:
         stale = age is None or not age < self.max_age_s
-        if stale != self.active:
-            self.active = stale
-            if stale and command is not None:
+        holding = stale and command is not None and command != self.stopped
+        if holding != self.active:
+            self.active = holding
+            if holding:
                 self.events += 1
                 now = get_clock().now()
                 if self._log.allow("stale", now):

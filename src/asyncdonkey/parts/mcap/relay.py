@@ -304,15 +304,16 @@ class SubprotocolRelay:
         try:
             data = side.sock.recv(self.buffer_limit)
             if data:
+                # counted before it goes out, so a reader of the stats never sees fewer bytes than a peer got
+                if side is conn.client:
+                    self.stats.to_server += len(data)
+                else:
+                    self.stats.to_clients += len(data)
                 sent = _send(other.sock, data)
         except OSError:
             self._close(conn)
             return
         if data:
-            if side is conn.client:
-                self.stats.to_server += len(data)
-            else:
-                self.stats.to_clients += len(data)
             if sent == len(data):
                 return
             other.out += memoryview(data)[sent:]

@@ -55,7 +55,7 @@ test: $(VENV)/.test $(CHROMIUM)
 
 test-fast: $(VENV)/.test
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -m "$(FAST)" $(PYTEST_ARGS)
+	$(PY) -m pytest -n auto -m "$(FAST)" $(PYTEST_ARGS)
 
 # The whole suite beside one busy process per core: a loaded machine, as a shared CI runner is. Each busy process
 # spins until the shell that started it is gone, so none outlives the run, however it ends; the shell also kills

@@ -35,12 +35,9 @@ import argparse
 import json
 import os
 import re
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -53,7 +50,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT / "tests" / "net"))
-from fleet_car import record_sim_frames  # noqa: E402
+from fleet_car import FleetProcess, record_sim_frames  # noqa: E402
 
 from machine_info import describe  # noqa: E402
 
@@ -76,43 +73,6 @@ def _cpu_ticks(pid: int | None = None) -> int:
         return sum(fields) - fields[3] - fields[4]
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return int(fields[11]) + int(fields[12])
-
-
-class Proc:
-    """A child process whose JSON lines (stdout) are collected as they come."""
-
-    def __init__(self, args: list[str]) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.p = subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
-        )
-        self.lines: list[str] = []
-        self.events: list[dict[str, Any]] = []
-        self._t = threading.Thread(target=self._read, daemon=True)
-        self._t.start()
-
-    def _read(self) -> None:
-        assert self.p.stdout is not None
-        for line in self.p.stdout:
-            self.lines.append(line)
-            if line.startswith("{"):
-                try:
-                    self.events.append(json.loads(line))
-                except ValueError:
-                    pass
-
-    def of(self, kind: str) -> list[dict[str, Any]]:
-        return [e for e in list(self.events) if e.get("event") == kind]
-
-    def stop(self, timeout: float = 20.0) -> None:
-        if self.p.poll() is None:
-            self.p.send_signal(signal.SIGTERM)
-        try:
-            self.p.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.p.kill()
-            self.p.wait()
-        self._t.join(timeout=5)
 
 
 def _configs(folder: Path, port: int) -> tuple[Path, Path]:
@@ -140,8 +100,8 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
     server_cfg, car_cfg = _configs(folder, port)
     names = [f"car{k + 1:02d}" for k in range(n)]
     command = ["-m", "asyncdonkey.commands", "pilot-server", str(model), "--cars", *names]
-    server = Proc([*command, "--config", str(server_cfg), "--stats-every", "0"])
-    cars: list[Proc] = []
+    server = FleetProcess([*command, "--config", str(server_cfg), "--stats-every", "0"], cwd=ROOT)
+    cars: list[FleetProcess] = []
     try:
         end = time.monotonic() + 30
         while not any(line.startswith("pilot server:") for line in server.lines):
@@ -152,7 +112,7 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
             args = [str(CAR_SCRIPT), "--frames", str(frames), "--config", str(car_cfg), "--hz", str(RATE_HZ)]
             for name in names[k : k + CARS_PER_PROCESS]:
                 args += ["--car", name]
-            cars.append(Proc(args))
+            cars.append(FleetProcess(args, cwd=ROOT))
         end = time.monotonic() + 30  # a saturated server may never answer some cars: measured as it is
         while sum(len(p.of("driving")) for p in cars) < n and time.monotonic() < end:
             time.sleep(0.05)
@@ -169,8 +129,8 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
         own = (sum(_cpu_ticks(p) for p in pids) - own0) / hz / wall / cores * 100
     finally:
         for p in cars:
-            p.stop()
-        server.stop()
+            p.stop(timeout=20.0)
+        server.stop(timeout=20.0)
     reports = [r for p in cars for r in p.of("report")]
     lat_all: list[float] = []
     car_p99, rates, answered = [], [], []

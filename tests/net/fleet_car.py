@@ -23,10 +23,13 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import signal
+import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -174,3 +177,48 @@ def record_sim_frames(path: str, count: int = 40, dt: float = 0.05) -> np.ndarra
     out = np.stack(frames).astype(np.uint8)
     np.save(path, out)
     return out
+
+
+class FleetProcess:
+    """A process of a fleet (a car of this script, a pilot server) whose stdout JSON lines are collected as they
+    come, its other lines kept: what the fleet tests and ``benchmarks/fleet.py`` read from the processes they start.
+    """
+
+    def __init__(self, args: list[str], cwd: str | os.PathLike[str] | None = None) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.p = subprocess.Popen(
+            [sys.executable, *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+        )
+        self.lines: list[str] = []
+        self.events: list[dict[str, Any]] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            self.lines.append(line)
+            if line.startswith("{"):
+                try:
+                    self.events.append(json.loads(line))
+                except ValueError:
+                    pass
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        """The events of one kind so far (``{"event": kind, ...}``)."""
+        return [e for e in list(self.events) if e.get("event") == kind]
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 15.0) -> None:
+        """``sig``, then a kill if it has not ended within ``timeout``; its output read to the end."""
+        if self.p.poll() is None:
+            self.p.send_signal(sig)
+        try:
+            self.p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.p.kill()
+            self.p.wait()
+        self._reader.join(timeout=5)
+
+
+#: This script, for the processes that run it.
+SCRIPT = Path(__file__).resolve()

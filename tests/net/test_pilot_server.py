@@ -10,13 +10,8 @@ killing the server stops every car by its own stale-command stop.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
-import os
 import signal
-import subprocess
-import sys
-import threading
 import time
 import types
 from pathlib import Path
@@ -28,7 +23,7 @@ from asyncdonkey.clock import get_clock
 from asyncdonkey.parts.zenoh.batch_infer import BatchPilot, dynamic_batch_onnx
 from asyncdonkey.parts.zenoh.batcher import BatchLoop, Frame, FrameBatcher
 
-from .fleet_car import record_sim_frames
+from .fleet_car import SCRIPT, FleetProcess, record_sim_frames
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "examples" / "models"
@@ -228,43 +223,6 @@ def test_gpu_on_a_machine_without_cuda_warns_and_runs_on_the_cpu(batchable, capl
 
 
 # -- the fleet, as processes on loopback -----------------------------------------------------------------------
-class Proc:
-    """A process of the fleet whose stdout JSON lines are collected as they come (and its other lines kept)."""
-
-    def __init__(self, *args: str) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.p = subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
-        )
-        self.events: list[dict] = []
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.p.stdout is not None
-        for line in self.p.stdout:
-            self.lines.append(line)
-            if line.startswith("{"):
-                try:
-                    self.events.append(json.loads(line))
-                except ValueError:
-                    pass
-
-    def of(self, kind: str) -> list[dict]:
-        return [e for e in list(self.events) if e.get("event") == kind]
-
-    def finish(self, sig: int = signal.SIGTERM, timeout: float = 15) -> None:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-        try:
-            self.p.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.p.kill()
-            self.p.wait()
-        self._reader.join(timeout=5)
-
-
 def _wait(cond, timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -294,17 +252,22 @@ def test_a_fleet_drives_on_one_server_and_stops_when_it_dies(tmp_path, frames, b
         listen_host="127.0.0.1",
     )  # fmt: skip
     frames_path = str(frames[0])
-    car_script = str(Path(__file__).with_name("fleet_car.py"))
-    server = Proc(
+    car_script = str(SCRIPT)
+    server = FleetProcess([
         "-m", "asyncdonkey.commands", "pilot-server", str(batchable), "--cars", *cars, "flood", "car9",
         "--config", str(fleet.server_config), "--stats-every", "0",
-    )  # fmt: skip
+    ], cwd=ROOT)  # fmt: skip
     fleet_cfg = str(tmp_path / "fleet" / "{car}" / "car.json5")
-    procs = [Proc(car_script, "--frames", frames_path, "--car", car, "--config", fleet_cfg) for car in cars]
-    flood = Proc(car_script, "--frames", frames_path, "--car", "flood", "--config", fleet_cfg, "--hz", "200")
-    foreign = Proc(
-        car_script, "--frames", frames_path, "--car", "car9", "--config", str(other.car_configs["car9"])
-    )  # fmt: skip
+    procs = [
+        FleetProcess([car_script, "--frames", frames_path, "--car", car, "--config", fleet_cfg], cwd=ROOT)
+        for car in cars
+    ]
+    flood = FleetProcess(
+        [car_script, "--frames", frames_path, "--car", "flood", "--config", fleet_cfg, "--hz", "200"], cwd=ROOT
+    )
+    foreign = FleetProcess(
+        [car_script, "--frames", frames_path, "--car", "car9", "--config", str(other.car_configs["car9"])], cwd=ROOT
+    )
     everyone = [*procs, flood, foreign]
     try:
         driving = lambda: all(p.of("driving") for p in [*procs, flood])  # noqa: E731
@@ -313,12 +276,12 @@ def test_a_fleet_drives_on_one_server_and_stops_when_it_dies(tmp_path, frames, b
         time.sleep(3.0)  # all five drive on the server, the flooder at 200 frames/s
         t_kill = time.monotonic()
         server.p.send_signal(signal.SIGKILL)
-        server.finish()
+        server.stop()
         time.sleep(1.0)
     finally:
         for p in everyone:
-            p.finish()
-        server.finish()
+            p.stop()
+        server.stop()
     reports = {r["car"]: r for p in everyone for r in p.of("report")}
     assert set(reports) == {*cars, "flood", "car9"}, [p.lines[-3:] for p in everyone]
     for car in [*cars, "flood"]:

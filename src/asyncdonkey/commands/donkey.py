@@ -46,7 +46,7 @@ from ..errors import PartError
 from ..extras import MissingExtra, install_command
 from ..loop import DriveReport, Vehicle
 from ..memory import Memory
-from ..parts.web.addresses import drive_urls
+from ..options import non_negative_int, option, positive_float
 from .donkey_tflite import tflite_pilots_replaced
 
 __all__ = [
@@ -165,6 +165,8 @@ def _announce_web_part(part: Any) -> None:
     port = getattr(part, "port", None)
     if not isinstance(port, int):
         return
+    from ..parts.web.addresses import drive_urls  # here: the web package loads aiohttp, which only web cars need
+
     page = "/drive" if type(part).__name__ == "LocalWebController" else "/"
     urls = drive_urls("http", port, page, versions=(4,))
     lines = [f"{type(part).__name__} (Donkeycar's), from a phone on the car's network:"]
@@ -230,20 +232,6 @@ def run_manage_py(path: str | Path, car_args: list[str], options: DriveOptions |
 
 
 # -- the command ---------------------------------------------------------------------------------------------
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
-
-
 def add_donkey_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``donkey`` subcommand to the ``asyncdonkey`` parser's subparsers."""
     p = subparsers.add_parser(
@@ -253,9 +241,9 @@ def add_donkey_parser(subparsers: Any) -> argparse.ArgumentParser:
         "Everything after the car file is the car's own arguments, e.g. `asyncdonkey donkey manage.py drive "
         "--js`. The car runs in its own directory, as `python manage.py` does when run from there.",
     )
-    p.add_argument("--hz", type=_positive_float, default=None, help="drive loop rate (default: the car's)")
-    p.add_argument("--max-loops", type=_non_negative_int, default=None, help="stop after N ticks")
-    p.add_argument("--duration", type=_positive_float, default=None, help="stop after S seconds")
+    p.add_argument("--hz", type=option(positive_float), default=None, help="drive loop rate (default: the car's)")
+    p.add_argument("--max-loops", type=option(non_negative_int), default=None, help="stop after N ticks")
+    p.add_argument("--duration", type=option(positive_float), default=None, help="stop after S seconds")
     p.add_argument("--verbose", action="store_true", help="jitter warnings and the profiler table every 200 loops")
     p.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
     p.add_argument("car", help="the car's manage.py (made by `donkey createcar`)")

@@ -132,5 +132,8 @@ def test_render_is_fast(sim):
         t = time.perf_counter()
         sim.renderer.render(x, y, h)
         times.append(time.perf_counter() - t)
-    # about 0.4 ms on one core here; the budget is 2 ms, with room for a loaded machine
-    assert float(np.median(times)) < 2e-3
+    # The simulated car renders one frame a tick: the renderer must leave a 20 Hz tick (50 ms) almost whole. About
+    # 0.4 ms on an idle core here, but a CI run beside another suite saw a 2.1 ms median, so the bound is what a
+    # loaded 2-core machine keeps: a fifth of the tick. A renderer that lost its vectorization (per-pixel Python,
+    # hundreds of ms a frame) still fails it.
+    assert float(np.median(times)) < 10e-3

@@ -22,10 +22,13 @@ driver's machine, holding the same token but not the driver's cookie, cannot tak
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import os
 import secrets
+import shlex
+import stat
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -59,6 +62,10 @@ def new_token() -> str:
     return secrets.token_urlsafe(16)
 
 
+#: The most a token file may hold: a token is a line; a larger file is not a token file.
+_TOKEN_FILE_MAX = 4096
+
+
 def token_from_file(path: str | os.PathLike[str]) -> str:
     """The token kept in ``path``, made (128 random bits, readable by its owner only) when the file does not exist.
 
@@ -66,24 +73,75 @@ def token_from_file(path: str | os.PathLike[str]) -> str:
     drives it a dead bookmark after each reboot. The file holds the token alone; deleting it makes a new one at
     the next start (which locks out every phone that had the old one). A file that exists but holds no usable
     token is an error, never silently replaced: the user may be pointing at the wrong file.
+
+    The token is a password, so the file must be private: a regular file owned by the user running the car, with
+    no group or other permission bits (``chmod 600``), opened without following a symbolic link (a link would
+    make any readable file of the machine, ``/etc/machine-id`` say, the token). The checks are made on the opened
+    file (``fstat``), so the file cannot be swapped between check and read. A new file is created ``0600`` with
+    ``O_EXCL | O_NOFOLLOW``: never through a link, never over a file someone else put there first.
     """
     p = Path(path)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     try:
-        fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        token = p.read_text(encoding="utf-8").strip()
-        if len(token) < 8 or any(c.isspace() for c in token) or not token.isprintable():
-            raise WebConfigError(
-                f"web token file {str(p)!r}: expected one token of at least 8 printable characters without spaces"
-                " (delete the file to have a new one made)"
-            ) from None
-        return token
+        fd = os.open(p, flags, 0o600)
+    except FileExistsError:  # also a symbolic link, dangling or not: O_EXCL never follows one
+        return _read_token_file(p)
     except FileNotFoundError:
         raise WebConfigError(f"web token file {str(p)!r}: its folder {str(p.parent)!r} does not exist") from None
     token = new_token()
     with os.fdopen(fd, "w", encoding="utf-8") as f:
+        os.fchmod(f.fileno(), 0o600)  # the umask can only have taken bits away; make it exactly owner-only
         f.write(token + "\n")
     return token
+
+
+def _read_token_file(p: Path) -> str:
+    """The token of an existing file, refused (one line: the file, what is wrong, the fix) unless it is private."""
+    try:
+        # O_NONBLOCK: a FIFO put there must not hang the start; it is refused below as not a regular file
+        fd = os.open(p, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise WebConfigError(
+                f"web token file {str(p)!r} is a symbolic link, which is not followed (it could make any file the "
+                "token); give the path of the token file itself"
+            ) from None
+        raise WebConfigError(f"web token file {str(p)!r} cannot be opened: {exc.strerror}") from None
+    try:
+        problem = _private_file_problem(os.fstat(fd), p)
+        if problem is not None:
+            raise WebConfigError(f"web token file {str(p)!r} {problem}")
+        data = os.read(fd, _TOKEN_FILE_MAX + 1)
+    finally:
+        os.close(fd)
+    token = data.decode("utf-8", errors="replace").strip()
+    if len(data) > _TOKEN_FILE_MAX or len(token) < 8 or any(c.isspace() for c in token) or not token.isprintable():
+        raise WebConfigError(
+            f"web token file {str(p)!r}: expected one token of at least 8 printable characters without spaces"
+            " (delete the file to have a new one made)"
+        )
+    return token
+
+
+def _private_file_problem(st: os.stat_result, p: Path) -> str | None:
+    """What keeps the opened file from being a private token file, with how to fix it; ``None`` if nothing."""
+    if stat.S_ISDIR(st.st_mode):
+        return "is a directory; give the path of a file (a new one is made there if it does not exist)"
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a regular file; give the path of a file (a new one is made there if it does not exist)"
+    uid = os.geteuid()
+    if st.st_uid != uid:
+        return (
+            f"is owned by uid {st.st_uid}, not by the user running the car (uid {uid}), who alone may hold the "
+            f"token: chown {uid} {shlex.quote(str(p))} (or delete it to have a new one made)"
+        )
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & 0o077:
+        return (
+            f"has mode {mode:04o}: its group or others can read the token; make it private: "
+            f"chmod 600 {shlex.quote(str(p))}"
+        )
+    return None
 
 
 def is_loopback(host: str) -> bool:

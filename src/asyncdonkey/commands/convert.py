@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -40,7 +41,7 @@ from typing import Any
 
 from ..contracts import REFUSED, Contract, Contracts, Gate
 from ..errors import AsyncdonkeyError
-from ..parts.tub import Tub, TubError
+from ..parts.tub import Tub, TubError, TubImageError
 
 __all__ = [
     "ConvertError",
@@ -107,7 +108,7 @@ def _image_admitted(gate: Gate, rec: Any, key: str, now: float) -> bool:
         return True
     try:
         image = rec[key]
-    except TubError as exc:
+    except TubImageError as exc:  # not TubImagePathError: a name leading out stops
         gate.refuse(key, "encoding", str(exc), now)
         return False
     return gate.admit(key, image, now) is not REFUSED
@@ -163,6 +164,8 @@ def tub_to_mcap(
                 if key.startswith("_") or key in skipped or value is None:
                     continue
                 if key in image_keys:
+                    if not isinstance(value, str):  # a damaged line: no image name, no image
+                        continue
                     try:
                         value = rec.image_path(key).read_bytes()
                     except OSError:
@@ -176,8 +179,11 @@ def tub_to_mcap(
             n += 1
             if sink.unsynced >= 200:
                 sink.sync()
-    finally:
+    except BaseException:
         sink.close()
+        _remove_partial(Path(mcap_path))
+        raise
+    sink.close()
     channels = [k for k in tub.inputs if k not in skipped]
     return ConvertResult(str(tub.base_path), os.fspath(mcap_path), n, channels, _counts(gate))
 
@@ -231,9 +237,24 @@ def mcap_to_tub(
             n += 1
             if app.unsynced >= 200:
                 app.sync()
-    finally:
+    except BaseException:
         app.close()
+        _remove_partial(app.base)
+        raise
+    app.close()
     return ConvertResult(os.fspath(mcap_path), str(app.base), n, inputs, _counts(gate), left_out)
+
+
+def _remove_partial(path: Path) -> None:
+    """Remove what a conversion that failed half-way created (the destination did not exist before it started), so
+    the half-written file does not pass for a conversion and the command can be run again as it was."""
+    try:
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
+    except OSError:
+        pass  # the error that stopped the conversion is the one to report
 
 
 def convert(

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..extras import require
-from ..parts.tub import Tub, TubError
+from ..parts.tub import Tub, TubError, TubImageError
 
 __all__ = ["METHODS", "QuantizeError", "QuantizeReport", "add_quantize_parser", "quantize_main", "quantize_pilot"]
 
@@ -116,7 +116,7 @@ def tub_frames(tub_path: str | os.PathLike[str], count: int, image_key: str = "c
     for rec in records:
         try:
             image = rec[image_key]
-        except TubError:
+        except TubImageError:  # an unreadable frame is passed over; a name leading out of the tub stops
             continue
         if isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 3:
             frames.append(image)

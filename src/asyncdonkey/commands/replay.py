@@ -61,7 +61,7 @@ from ..contracts import Contract, Contracts, Gate
 from ..errors import AsyncdonkeyError
 from ..loop import PartError, Vehicle
 from ..options import option, positive_float
-from ..parts.tub import Record, Tub, TubError
+from ..parts.tub import Record, Tub, TubError, TubImageError
 from .recordings import admit_with_reason, open_recording
 
 __all__ = [
@@ -371,7 +371,7 @@ class TubPlayer:
                 continue
             try:
                 image = rec[self._image_key]
-            except TubError:
+            except TubImageError:  # a name leading out of the tub is not passed over
                 self._skip("bad_image", rec)
                 continue
             (image, ua, ut), refused = self._admit(
@@ -516,7 +516,7 @@ async def areplay(
     missing = [k for k in (image_key, *user_keys) if k not in tub.inputs]
     if missing:
         raise ReplayError(f"{tub.base_path}: the tub records no {', '.join(missing)} (it records {tub.inputs})")
-    predict, pilot_name, owned = _resolve_pilot(pilot, lambda: _first_frame_shape(tub, image_key))
+    predict, pilot_name, owned = _resolve_pilot(pilot, lambda: _readable_frame_shape(tub, image_key))
     real_start = time.perf_counter()
     try:
         vehicle = Vehicle(contracts=contracts)
@@ -544,6 +544,8 @@ async def areplay(
             cause = exc.__cause__
             if isinstance(cause, ReplayError):
                 raise ReplayError(f"{tub.base_path}: {cause}") from cause.__cause__
+            if isinstance(cause, TubError):  # the recording's own error names it (an image name leading out)
+                raise cause from None
             raise
     finally:
         if owned is not None:
@@ -584,6 +586,15 @@ def _resolve_pilot(
     raise TypeError(f"replay: pilot must be a model path, an object with predict(image) or a callable; got {pilot!r}")
 
 
+def _readable_frame_shape(tub: Tub, image_key: str) -> tuple[int, ...]:
+    """:func:`_first_frame_shape`, or a one-line error naming the recording when no frame is readable (a model
+    loaded for a default shape would blame the model for the recording's damage)."""
+    shape = _first_frame_shape(tub, image_key)
+    if shape is None:
+        raise ReplayError(f"{tub.base_path}: no readable {image_key} frame to load the model for")
+    return shape
+
+
 def _first_frame_shape(tub: Tub, image_key: str) -> tuple[int, ...] | None:
     """The shape of the first readable ``image_key`` image in ``tub`` (``None`` if there is none)."""
     for rec in tub.records():
@@ -591,7 +602,7 @@ def _first_frame_shape(tub: Tub, image_key: str) -> tuple[int, ...] | None:
             continue
         try:
             image = rec[image_key]
-        except TubError:
+        except TubImageError:
             continue
         if isinstance(image, np.ndarray):
             return tuple(int(d) for d in image.shape)

@@ -31,7 +31,7 @@ import html
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,14 +98,18 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
     lat: dict[str, list[tuple[int, float]]] = {}
     for m in read_mcap(path, {TICK_TOPIC, PARTS_TOPIC, LATENCY_TOPIC}):
         v = m.value
+        if not isinstance(v, dict):  # a message of another shape than the recorder writes: not timing
+            continue
         if m.topic == TICK_TOPIC:
             _add_tick(ticks, m.log_time_ns, v)
-            d.timing_dropped = max(d.timing_dropped, v.get("timing_dropped") or 0)
+            dropped = v.get("timing_dropped")
+            if isinstance(dropped, int):
+                d.timing_dropped = max(d.timing_dropped, dropped)
         elif m.topic == PARTS_TOPIC:
-            for name, ms in v.items():
+            for name, ms in _figures(v):
                 parts.setdefault(name, []).append(ms)
         else:
-            for name, ms in v.items():
+            for name, ms in _figures(v):
                 lat.setdefault(name, []).append((m.log_time_ns, ms))
     started = sorted(k for k, row in ticks.items() if row[0] is not None and row[1] is not None)
     if not started:
@@ -120,6 +124,13 @@ def _load_mcap(path: str | os.PathLike[str]) -> DriveTiming:
     if len(d.t) > 2:
         d.period_ms = float(np.median(np.diff(d.t))) * 1e3
     return d
+
+
+def _figures(v: dict[str, Any]) -> Iterator[tuple[str, float]]:
+    """The ``name: milliseconds`` pairs of a parts or latency message that are numbers (what the recorder wrote)."""
+    for name, ms in v.items():
+        if isinstance(ms, int | float) and not isinstance(ms, bool):
+            yield str(name), float(ms)
 
 
 def _add_tick(ticks: dict[int, list[Any]], log_ns: int, v: dict[str, Any]) -> None:

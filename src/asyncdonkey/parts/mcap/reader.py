@@ -25,16 +25,17 @@ throughout; their messages are grouped by log time, as they were written.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ...extras import require
+from ...extras import MissingExtra, require
 from ..tub import TubFormatError, TubImageError, TubNotFoundError
 from .encode import topic_for
 from .sink import CLOCK_METADATA, SESSION_METADATA
@@ -50,6 +51,11 @@ __all__ = [
     "protobuf_class",
     "read_mcap",
 ]
+
+logger = logging.getLogger(__name__)
+
+
+_MAGIC = b"\x89MCAP0\r\n"
 
 
 class McapReadError(TubFormatError):
@@ -80,42 +86,98 @@ class McapInfo:
     recovered: bool
     """True when the file has no summary (the writer did not close it) and was read up to its last complete
     record."""
+    damage: list[str] = field(default_factory=list)
+    """where the reading met damage and what it did: a chunk left out (CRC mismatch), or the byte it could not
+    read past; empty for an intact file (a crash's torn end is ``recovered``, and listed here too)"""
+
+
+#: The most a chunk may claim to hold uncompressed: our recorder ends chunks at 4 MiB; a larger claim is a damaged
+#: size field, which would otherwise have the decompressor allocate it.
+_MAX_CHUNK_BYTES = 1 << 30
 
 
 def _records(path: str | os.PathLike[str]) -> Iterator[Any]:
-    """The file's records in order, stopping quietly at a torn end (a crash) instead of raising."""
-    from mcap.exceptions import McapError
-    from mcap.stream_reader import StreamReader
+    """The file's records in order. Damage never raises: a chunk that fails its CRC (or does not decompress) is
+    left out and reported as :class:`_Damaged`, and the reading goes on with the next record; a record whose
+    framing is broken (a torn end after a crash, a length past the end of the file) ends the reading with a
+    :class:`_Torn`. Records are never longer than the file, which keeps a flipped length from allocating
+    gigabytes."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
 
     with open(path, "rb") as f:
-        reader = StreamReader(f, skip_magic=False, emit_chunks=False)
-        try:
-            yield from reader.records
-        except (McapError, EOFError, ValueError, KeyError) as exc:
-            # a torn record at the end; the reader cannot go past it
-            yield _Torn(str(exc))
-        except Exception as exc:  # zstd/lz4 errors on a torn chunk have their own types
-            if type(exc).__module__.split(".")[0] in ("zstandard", "lz4", "struct"):
-                yield _Torn(str(exc))
-            else:
-                raise
+        size = os.fstat(f.fileno()).st_size
+        reader = StreamReader(f, skip_magic=False, emit_chunks=True, record_size_limit=size)
+        records = iter(reader.records)
+        while True:
+            start = f.tell()  # where the next record starts (the reader reads the file unbuffered)
+            try:
+                rec = next(records)
+            except StopIteration:
+                return
+            except Exception as exc:  # any parse error: the reader cannot go past it
+                yield _Torn(start, _why(exc))
+                return
+            if not isinstance(rec, Chunk):
+                yield rec
+                continue
+            try:
+                if rec.uncompressed_size > _MAX_CHUNK_BYTES:
+                    raise ValueError(f"claims {rec.uncompressed_size} bytes uncompressed")
+                inner = breakup_chunk(rec, validate_crc=True)
+            except Exception as exc:  # a CRC mismatch, or zstd/lz4/struct errors with their own types
+                yield _Damaged(start, _why(exc))
+                continue
+            yield from inner
+
+
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
 @dataclass(frozen=True)
 class _Torn:
+    """The reading stopped at byte ``offset``: the record there cannot be framed (a torn end, a bad length)."""
+
+    offset: int
     why: str
+
+
+@dataclass(frozen=True)
+class _Damaged:
+    """The chunk at byte ``offset`` was left out (its messages are lost; the records after it are read)."""
+
+    offset: int
+    why: str
+
+
+_WARNED: set[tuple[str, int, str]] = set()
+
+
+def _warn_once(path: str | os.PathLike[str], offset: int, what: str) -> None:
+    """Log a damage once per file and place: replay and convert read a file more than once."""
+    key = (os.fspath(path), offset, what)
+    if key not in _WARNED:
+        _WARNED.add(key)
+        logger.warning("%s: %s", os.fspath(path), what)
 
 
 def read_mcap(
     path: str | os.PathLike[str], topics: set[str] | None = None, *, decode: bool = True
 ) -> Iterator[McapMessage]:
-    """Every message of the file (or of ``topics``), in file order, decoded (``decode=False``: raw bytes)."""
+    """Every message of the file (or of ``topics``), in file order, decoded (``decode=False``: raw bytes).
+
+    What damage leaves readable is read (see :func:`_records`); what was lost is logged once per file and place.
+    A message that does not decode with its schema is left out (logged); a schema that cannot be built at all
+    raises :class:`McapReadError`, naming the file, the topic and the schema."""
     require("mcap", "mcap", "reading MCAP recordings")
     from mcap.records import Channel, Message, Schema
 
+    where = os.fspath(path)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     decoders: dict[int, Any] = {}
+    damaged = False
     for rec in _records(path):
         if isinstance(rec, Schema):
             schemas[rec.id] = rec
@@ -123,6 +185,8 @@ def read_mcap(
             channels[rec.id] = rec
         elif isinstance(rec, Message):
             ch = channels.get(rec.channel_id)
+            if ch is None and damaged:  # its definition was in a lost chunk: the summary repeats it
+                ch = _definitions_from_summary(path, schemas, channels).get(rec.channel_id)
             if ch is None or (topics is not None and ch.topic not in topics):
                 continue
             schema = schemas.get(ch.schema_id)
@@ -131,13 +195,60 @@ def read_mcap(
             if decode:
                 dec = decoders.get(ch.id)
                 if dec is None:
-                    dec = decoders[ch.id] = _decoder(ch, schema)
-                value = dec(rec.data)
+                    dec = decoders[ch.id] = _decoder_for(where, ch, schema)
+                try:
+                    value = dec(rec.data)
+                except Exception as exc:  # protobuf's DecodeError, json's, UnicodeDecodeError
+                    _warn_once(path, -1, f"{ch.topic}: a message that is not valid {name or 'data'} left out ({exc})")
+                    continue
             yield McapMessage(ch.topic, rec.log_time, rec.publish_time, name, value, rec.sequence)
+        elif isinstance(rec, _Damaged):
+            damaged = True
+            _warn_once(path, rec.offset, f"damaged chunk at byte {rec.offset} left out ({rec.why}); read on past it")
+        elif isinstance(rec, _Torn):
+            _check_torn(where, rec)
+
+
+def _check_torn(where: str, torn: _Torn) -> None:
+    """A file that breaks off before its first record is not a recording: raise. A later break is a crash's torn
+    end (or damage to a record's framing): every record before it was read, so log it and stop."""
+    if torn.offset < len(_MAGIC):
+        raise McapReadError(f"{where}: not an MCAP file ({torn.why})")
+    _warn_once(where, torn.offset, f"cannot read past byte {torn.offset} ({torn.why}); every record before it read")
+
+
+def _decoder_for(where: str, channel: Any, schema: Any) -> Any:
+    """:func:`_decoder`, with a schema that cannot be built reported as the file's fault, in one line."""
+    try:
+        return _decoder(channel, schema)
+    except MissingExtra:
+        raise
+    except Exception as exc:  # protobuf raises TypeError, DecodeError or KeyError on a corrupt descriptor set
+        name = schema.name if schema is not None else "?"
+        raise McapReadError(f"{where}: the schema {name!r} of {channel.topic} is corrupt ({_why(exc)})") from None
+
+
+def _definitions_from_summary(path: str | os.PathLike[str], schemas: dict[int, Any], channels: dict[int, Any]) -> Any:
+    """Add the schemas and channels of the file's summary section (a closed file repeats every definition there)
+    to those read so far, and return the channels. A damaged chunk may have held a channel's only definition in
+    the data section; without a readable summary, that channel's later messages stay lost."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # no summary (a crash), or a damaged one: nothing more to learn
+        summary = None
+    if summary is not None:
+        for k, v in summary.schemas.items():
+            schemas.setdefault(k, v)
+        for k, v in summary.channels.items():
+            channels.setdefault(k, v)
+    return channels
 
 
 def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
-    """Topics, message count, metadata records and whether the file was cut short."""
+    """Topics, message count, metadata records, whether the file was cut short and what damage was read past."""
     require("mcap", "mcap", "reading MCAP recordings")
     from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 
@@ -146,6 +257,7 @@ def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
     schemas: dict[int, str] = {}
     topics: dict[str, str] = {}
     metadata: dict[str, dict[str, str]] = {}
+    damage: list[str] = []
     n = 0
     finished = False
     for rec in _records(path):
@@ -159,7 +271,14 @@ def mcap_info(path: str | os.PathLike[str]) -> McapInfo:
             metadata[rec.name] = dict(rec.metadata)
         elif isinstance(rec, DataEnd | Footer):
             finished = True
-    return McapInfo(os.fspath(path), n, topics, metadata, recovered=not finished)
+        elif isinstance(rec, _Damaged):
+            damage.append(f"byte {rec.offset}: chunk left out ({rec.why})")
+        elif isinstance(rec, _Torn):
+            _check_torn(os.fspath(path), rec)
+            if finished:
+                break  # the data section was read whole; damage in the summary loses nothing
+            damage.append(f"byte {rec.offset}: read up to here ({rec.why})")
+    return McapInfo(os.fspath(path), n, topics, metadata, recovered=not finished, damage=damage)
 
 
 def _decoder(channel: Any, schema: Any) -> Any:
@@ -256,7 +375,7 @@ class McapTub:
         if not self.path.is_file():
             raise TubNotFoundError(f"{os.fspath(path)}: no such MCAP file")
         with open(self.path, "rb") as f:
-            if f.read(8) != b"\x89MCAP0\r\n":
+            if f.read(len(_MAGIC)) != _MAGIC:
                 raise McapReadError(f"{os.fspath(path)}: not an MCAP file")
         self.base_path = str(self.path)
         self.image_key = image_key

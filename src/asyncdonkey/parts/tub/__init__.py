@@ -10,7 +10,7 @@ See ``docs/recording.md`` for the format, the queue and durability policies and 
 
 from .appender import RepairReport, repair_tub
 from .fileio import TubFileIO
-from .format import TYPES, TubError, TubFormatError, TubImageError, TubNotFoundError
+from .format import TYPES, TubError, TubFormatError, TubImageError, TubImagePathError, TubNotFoundError
 from .reader import Record, Tub, load_image
 from .wiper import TubWiper
 from .writer import TubWriter, TubWriterStats
@@ -24,6 +24,7 @@ __all__ = [
     "TubFileIO",
     "TubFormatError",
     "TubImageError",
+    "TubImagePathError",
     "TubNotFoundError",
     "TubWiper",
     "TubWriter",

@@ -43,6 +43,7 @@ __all__ = [
     "TubError",
     "TubFormatError",
     "TubImageError",
+    "TubImagePathError",
     "TubNotFoundError",
     "add_session",
     "catalog_manifest_name",
@@ -84,6 +85,11 @@ class TubFormatError(TubError, ValueError):
 
 class TubImageError(TubError, OSError):
     """A record's image file is missing or cannot be decoded (the message names the file)."""
+
+
+class TubImagePathError(TubFormatError):
+    """A record's image name leads out of the tub's ``images/`` (absolute, ``..``, a symlink out): refused, never
+    read. Not a :class:`TubImageError`: a reader that passes over an unreadable image must not pass over this."""
 
 
 def catalog_name(n: int) -> str:
@@ -211,6 +217,9 @@ class ManifestData:
             raise TubFormatError(f"{where}: line 5 (catalog metadata) has no {exc.args[0]!r}") from None
         if not (isinstance(paths, list) and all(isinstance(p, str) for p in paths)):
             raise TubFormatError(f"{where}: catalog 'paths' must be a list of file names, got {paths!r}")
+        outside = [p for p in paths if not _plain_name(p)]
+        if outside:  # a catalog is a file of the tub: a path leading elsewhere is never read
+            raise TubFormatError(f"{where}: catalog path {outside[0]!r} is not a file name inside the tub")
         if not (isinstance(current_index, int) and current_index >= 0):
             raise TubFormatError(f"{where}: 'current_index' must be a non-negative integer, got {current_index!r}")
         if not (isinstance(max_len, int) and max_len > 0):
@@ -218,6 +227,11 @@ class ManifestData:
         if not (isinstance(deleted, list) and all(isinstance(i, int) for i in deleted)):
             raise TubFormatError(f"{where}: 'deleted_indexes' must be a list of integers")
         return cls(inputs, types, metadata, manifest_metadata, paths, current_index, max_len, set(deleted))
+
+
+def _plain_name(name: str) -> bool:
+    """A file name of the tub's own directory: no directory part, not ``.``/``..``, no NUL."""
+    return bool(name) and name not in (".", "..") and not any(c in name for c in "/\\\x00")
 
 
 def read_manifest(base_path: Path) -> ManifestData:

@@ -39,6 +39,7 @@ from .format import (
     MANIFEST_NAME,
     ManifestData,
     TubImageError,
+    TubImagePathError,
     read_manifest,
 )
 from .scan import CatalogScan, scan_tub
@@ -50,10 +51,15 @@ logger = logging.getLogger(__name__)
 
 def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a tub image as Donkeycar's reader returns it: RGB (or grey) uint8, uint16 for 16-bit PNG."""
-    img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+    try:
+        with open(path, "rb") as f:  # read here, not by cv2.imread, which prints its own warning on a missing file
+            data = f.read()
+    except FileNotFoundError:
+        raise TubImageError(f"{path}: image file is missing") from None
+    except OSError as exc:
+        raise TubImageError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
-        if not os.path.exists(path):
-            raise TubImageError(f"{path}: image file is missing")
         raise TubImageError(f"{path}: not a readable image (empty or corrupt file)")
     if img.ndim == 3:
         if img.shape[2] == 3:
@@ -63,19 +69,35 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     return img
 
 
+def _inside(images_dir: Path, name: str) -> bool:
+    """Whether image name ``name`` stays inside ``images_dir``: relative, no ``..`` component, no NUL, and still
+    inside once symlinks are followed (``images_dir`` itself resolved; a tub may keep its images elsewhere)."""
+    if not name or "\x00" in name or os.path.isabs(name) or ".." in Path(name).parts:
+        return False
+    root = images_dir.resolve()
+    return (root / name).resolve().is_relative_to(root)
+
+
 class Record(Mapping[str, Any]):
     """One record: a read-only mapping over the stored JSON whose image keys load their image on access.
 
     ``record[key]`` for an ``image_array``/``gray16_array`` key returns the decoded array (loaded once, then
     cached); :attr:`raw` holds the values as stored (image file names). ``dict(record)`` loads every image.
+
+    An image name is data from the catalog, not a path to trust: one that is absolute, has a ``..`` component or
+    leads out of ``images/`` through a symlink raises :class:`~.format.TubImagePathError` (naming the tub, the
+    record and the name) instead of reading a file of the machine.
     """
 
-    __slots__ = ("_cache", "_image_keys", "_images_dir", "raw")
+    __slots__ = ("_cache", "_image_keys", "_images_dir", "_position", "raw")
 
-    def __init__(self, raw: dict[str, Any], image_keys: frozenset[str], images_dir: Path) -> None:
+    def __init__(
+        self, raw: dict[str, Any], image_keys: frozenset[str], images_dir: Path, position: int | None = None
+    ) -> None:
         self.raw = raw
         self._image_keys = image_keys
         self._images_dir = images_dir
+        self._position = position
         self._cache: dict[str, Any] = {}
 
     def __getitem__(self, key: str) -> Any:
@@ -83,7 +105,7 @@ class Record(Mapping[str, Any]):
         if key in self._image_keys and isinstance(value, str):
             cached = self._cache.get(key)
             if cached is None:
-                cached = self._cache[key] = load_image(self._images_dir / value)
+                cached = self._cache[key] = load_image(self.image_path(key))
             return cached
         return value
 
@@ -98,11 +120,19 @@ class Record(Mapping[str, Any]):
 
     @property
     def index(self) -> int:
-        return self.raw["_index"]
+        """The record's position in the tub (what ``_index`` holds in an intact catalog line)."""
+        return self._position if self._position is not None else self.raw["_index"]
 
     def image_path(self, key: str) -> Path:
-        """The file holding ``key``'s image."""
-        return self._images_dir / self.raw[key]
+        """The file holding ``key``'s image, checked to be inside the tub's ``images/``."""
+        name = self.raw[key]
+        if not (isinstance(name, str) and _inside(self._images_dir, name)):
+            where = "" if self._position is None else f" record {self._position}:"
+            raise TubImagePathError(
+                f"{self._images_dir.parent}:{where} image name {name!r} of {key!r} is not a file inside "
+                f"{IMAGES_DIR}/ (absolute, '..' or a symlink leading out); refused"
+            )
+        return self._images_dir / name
 
     def __repr__(self) -> str:
         return f"Record({self.raw!r})"
@@ -227,7 +257,7 @@ class Tub:
                     self.corrupt_lines += 1
                     logger.warning("%s: line %d is not a JSON record; skipped", path, i + 1)
                     continue
-                yield Record(raw, keys, images)
+                yield Record(raw, keys, images, start + i)
 
     # ------------------------------------------------------------------------------------ editing
     def delete_records(self, indexes: int | Iterable[int]) -> None:

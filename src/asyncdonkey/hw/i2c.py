@@ -11,6 +11,11 @@ Why this layer exists:
   another chip's transfers. Every transfer, async or sync, takes the bus's re-entrant lock, and
   :meth:`I2CBus.locked` holds it across a sequence. :class:`I2CBusRegistry` hands out the one :class:`I2CBus`
   per bus number, and :meth:`I2CBus.shared` keeps one driver per chip on it.
+* **One process per chip.** A driver claims its chip (:meth:`I2CBus.claim`) before it sends it anything: an
+  advisory lock per bus and address (:mod:`asyncdonkey.hw.owner_lock`), so a second car started on a chip
+  that another car drives is refused with :class:`I2CDeviceInUse` naming the owner, instead of resetting the
+  chip under it. Every user in one process shares the claim; the kernel drops it when the owner exits or is
+  killed.
 * **Transient errors are retried, then named.** A servo's electrical noise makes a transfer NACK now and then
   (``OSError`` errno 121 on a Raspberry Pi). Transient errnos are retried ``retries`` times after
   ``retry_delay_s``; the error that finally escapes is an :class:`I2CError` that says which bus, address,
@@ -26,18 +31,25 @@ import asyncio
 import concurrent.futures
 import contextlib
 import errno
+import hashlib
+import json
 import logging
+import os
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, TypeVar
 
 from ..errors import AsyncdonkeyError
+from . import owner_lock
+from .owner_lock import DeviceOwner
 
 __all__ = [
     "TRANSIENT_ERRNOS",
     "I2CBus",
     "I2CBusRegistry",
+    "I2CDeviceInUse",
     "I2CDeviceNotFound",
     "I2CError",
     "SMBusLike",
@@ -102,6 +114,20 @@ class I2CDeviceNotFound(I2CError):
     """Nothing answered at an address when a driver opened its chip (not wired, wrong address, no power)."""
 
 
+class I2CDeviceInUse(I2CError):
+    """Another process owns the chip (:meth:`I2CBus.claim`): a second car on the same chip. ``errno`` is EBUSY.
+
+    ``owner`` is the :class:`~asyncdonkey.hw.owner_lock.DeviceOwner` its lock file names (pid, command line,
+    start time), or ``None`` if it names no live process; ``lock_path`` is that file.
+    """
+
+    def __init__(self, message: str, *, owner: DeviceOwner | None, lock_path: str, **kwargs: Any) -> None:
+        super().__init__(message, **kwargs)
+        self.errno = errno.EBUSY
+        self.owner = owner
+        self.lock_path = lock_path
+
+
 def _where(bus: int, address: int, register: int | None) -> str:
     reg = "" if register is None else f", register 0x{register:02X}"
     return f"I2C bus {bus}, device 0x{address:02X}{reg}"
@@ -145,6 +171,9 @@ class I2CBus:
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._shared: dict[Any, Any] = {}
         self._closed = False
+        #: address → the lock file claimed for it (``None``: a bus no other process can reach, nothing to lock)
+        self._claims: dict[int, str | None] = {}
+        self._claims_finalizer = weakref.finalize(self, _release_claims, self._claims)
         if smbus_factory is None:
             import smbus2
 
@@ -205,6 +234,78 @@ class I2CBus:
         opener = getattr(owner, "cross_process_opener", None)
         spec = opener(self.bus_number) if callable(opener) else None
         return spec if isinstance(spec, dict) else None
+
+    def lock_path(self, address: int) -> str | None:
+        """The lock file that makes one process the owner of the chip at ``address`` on this bus.
+
+        A real bus is named by its device (``/dev/i2c-1`` → ``asyncdonkey-i2c-1-0x40.lock``). A simulated bus
+        another process can open (a served simulator, from the serving process and from its clients alike) is
+        named by how it is opened (:meth:`cross_process_spec`: the socket and the bus number), so the processes
+        sharing one served model share the lock and unrelated simulators never meet. ``None`` where no other
+        process can reach the bus (an in-process simulator): there is nothing to guard.
+        """
+        spec = self.cross_process_spec()
+        if spec is None:
+            return None
+        if spec.get("path") == f"/dev/i2c-{self.bus_number}":
+            name = f"asyncdonkey-i2c-{self.bus_number}-0x{address:02x}.lock"
+        else:
+            digest = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+            name = f"asyncdonkey-i2c-{self.bus_number}-{digest}-0x{address:02x}.lock"
+        return os.path.join(owner_lock.lock_dir(), name)
+
+    def claim(self, address: int, what: str = "") -> bool:
+        """Make this process the owner of the chip at ``address``; drivers call it before sending the chip anything.
+
+        Returns ``True`` if this call made the claim (``False``: this bus had claimed it already). Every bus of
+        this process may claim the same chip (steering and throttle on one PCA9685); another process may not,
+        until this one closes the bus or exits: :class:`I2CDeviceInUse` names the owner. ``what`` names the chip
+        in the error (``"PCA9685"``).
+        """
+        with self._lock:
+            if self._closed:
+                raise I2CError(
+                    f"I2C bus {self.bus_number}: claim of 0x{address:02X} on a closed bus", bus=self.bus_number
+                )
+            if address in self._claims:
+                return False
+            path = self.lock_path(address)
+            chip = (
+                f"{what} at 0x{address:02X} on I2C bus {self.bus_number}"
+                if what
+                else (f"I2C device 0x{address:02X} on bus {self.bus_number}")
+            )
+            if path is not None:
+                try:
+                    owner_lock.acquire(path, chip)
+                except owner_lock.LockHeld as held:
+                    who = held.owner.describe() if held.owner is not None else f"another process (lock file {path})"
+                    raise I2CDeviceInUse(
+                        f"{chip} is in use by {who}: stop that car first",
+                        owner=held.owner,
+                        lock_path=path,
+                        bus=self.bus_number,
+                        address=address,
+                        operation="claim",
+                    ) from None
+                except OSError as exc:
+                    raise I2CError(
+                        f"{chip}: cannot take its lock file {path}: {exc}",
+                        bus=self.bus_number,
+                        address=address,
+                        operation="claim",
+                        cause=exc,
+                    ) from exc
+            self._claims[address] = path
+            return True
+
+    def unclaim(self, address: int) -> None:
+        """Let go of this bus's claim on ``address`` (a driver whose init failed); unknown addresses are ignored."""
+        with self._lock:
+            if address in self._claims:
+                path = self._claims.pop(address)
+                if path is not None:
+                    owner_lock.release(path)
 
     def shared(self, key: Any, create: Callable[[], T]) -> T:
         """The one object for ``key`` on this bus, made by ``create()`` the first time.
@@ -346,11 +447,13 @@ class I2CBus:
 
     # ----------------------------------------------------------------------------------------- close
     def close(self) -> None:
-        """Close the bus and its worker thread; later transfers raise :class:`I2CError`."""
+        """Close the bus and its worker thread, and let go of its chips' claims; later transfers raise
+        :class:`I2CError`."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+            self._claims_finalizer()
             ex, self._executor = self._executor, None
             try:
                 self._smbus.close()
@@ -362,6 +465,15 @@ class I2CBus:
     @property
     def closed(self) -> bool:
         return self._closed
+
+
+def _release_claims(claims: dict[int, str | None]) -> None:
+    """Release a bus's claims (at close, or when a bus that was never closed is collected)."""
+    paths = list(claims.values())
+    claims.clear()
+    for path in paths:
+        if path is not None:
+            owner_lock.release(path)
 
 
 class I2CBusRegistry:

@@ -10,6 +10,9 @@ Design notes:
   and the address: a wrong chip at 0x68 would otherwise give plausible-looking garbage.
 * **Explicit configuration.** Wake (PWR_MGMT_1 = 0), low-pass filter (CONFIG), gyro and accel full-scale
   ranges are written at open; scaling uses the ranges written, never an assumed default.
+* **One process per chip.** The driver claims the chip (:meth:`~asyncdonkey.hw.i2c.I2CBus.claim`) before it
+  sends it anything: a second process's init would rewrite the ranges under the first, whose readings would
+  then be scaled wrong without any error.
 
 ``read_sync`` blocks (run it in a worker thread, e.g. through :class:`asyncdonkey.Poller`); ``read`` is the
 async form on the bus's worker thread.
@@ -98,8 +101,9 @@ class MPU6050:
         accel_range_g: 2, 4, 8 or 16. gyro_range_dps: 250, 500, 1000 or 2000.
         dlpf: digital low-pass filter setting 0..6 for CONFIG (0 = off), Donkeycar's ``IMU_DLP_CONFIG``.
 
-    Construction probes the chip, checks WHO_AM_I, wakes it and writes the configuration (blocking I2C:
-    do it at setup, or through ``await bus.call(MPU6050, ...)``).
+    Construction claims the chip for this process (:class:`~asyncdonkey.hw.i2c.I2CDeviceInUse` if another
+    process has it), probes it, checks WHO_AM_I, wakes it and writes the configuration (blocking I2C: do it at
+    setup, or through ``await bus.call(MPU6050, ...)``).
     """
 
     def __init__(
@@ -130,6 +134,17 @@ class MPU6050:
         self.accel_range_g = accel_range_g
         self.gyro_range_dps = gyro_range_dps
         self.dlpf = dlpf
+        claimed = bus.claim(address, "MPU6050/MPU9250 IMU")  # before anything reaches the chip
+        try:
+            self._configure_sync(sensor, accel_code, gyro_code)
+        except BaseException:
+            if claimed:
+                bus.unclaim(address)
+            raise
+
+    def _configure_sync(self, sensor: str | None, accel_code: int, gyro_code: int) -> None:
+        """Identify the chip, wake it and write its configuration, as one sequence on the bus."""
+        bus, address, dlpf = self.bus, self.address, self.dlpf
         with bus.locked():
             who = bus.probe_sync(address, WHO_AM_I, "MPU6050/MPU9250 IMU")
             found = WHO_AM_I_VALUES.get(who)

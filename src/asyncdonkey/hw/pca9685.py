@@ -6,6 +6,13 @@ Register facts: the datasheet's register map (MODE1 0x00, MODE2 0x01, LEDn at 0x
   :class:`~asyncdonkey.hw.i2c.I2CBus`. Donkeycar builds a new chip object per pin and each one re-runs the
   chip init, which zeroes channels another part already set (the steering servo goes limp when the throttle
   pin is opened). Here the second channel reuses the first one's driver and its init never runs again.
+* **One process per chip.** The driver claims the chip (:meth:`~asyncdonkey.hw.i2c.I2CBus.claim`, a lock per
+  bus and address) before it sends it anything, so a second car started on the same chip is refused with
+  :class:`~asyncdonkey.hw.i2c.I2CDeviceInUse` naming the first, instead of resetting its outputs.
+* **The init turns off what it finds, but says so.** A chip that is already generating pulses at init was left
+  so by a program that has ended (its last pulses, perhaps a driving throttle, must not go on) or by one that
+  takes no lock (Donkeycar, ``donkey calibrate``). The outputs still go off, as Donkeycar's init does, but the
+  driver first reads them and logs a warning naming each channel and its pulse.
 * **Frequency change as the datasheet asks:** read MODE1, write it back with SLEEP set (PRE_SCALE is only
   writable while the oscillator sleeps), write PRE_SCALE, restore MODE1 awake with auto-increment on, wait at
   least 500 µs for the oscillator, then set RESTART so the channels resume.
@@ -21,6 +28,7 @@ them on the bus's worker thread.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any
@@ -47,7 +55,10 @@ __all__ = [
     "get_pca9685",
     "open_pwm_channel",
     "prescale_for",
+    "pulse_of",
 ]
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_ADDRESS = 0x40
 OSCILLATOR_HZ = 25_000_000
@@ -106,13 +117,24 @@ def channel_bytes(pulse: int) -> bytes:
     return bytes((0, 0, pulse & 0xFF, pulse >> 8))
 
 
+def pulse_of(registers: bytes) -> int:
+    """The high ticks per period that a channel's ON_L, ON_H, OFF_L, OFF_H describe (full-off wins)."""
+    on_l, on_h, off_l, off_h = registers
+    if off_h & FULL_BIT:
+        return 0
+    if on_h & FULL_BIT:
+        return TICKS
+    return ((off_l | (off_h & 0x0F) << 8) - (on_l | (on_h & 0x0F) << 8)) % TICKS
+
+
 class PCA9685:
     """One PCA9685 chip. Prefer :func:`get_pca9685`, which shares one instance per (bus, address).
 
-    Construction probes the chip (a clear :class:`~asyncdonkey.hw.i2c.I2CDeviceNotFound` if nothing answers)
-    and initialises it: MODE2 totem-pole outputs, every channel full-off (no stale pulse from a previous
-    process) unless ``reset_outputs=False``, then the frequency sequence, which leaves the chip awake with
-    auto-increment on.
+    Construction claims the chip for this process (:class:`~asyncdonkey.hw.i2c.I2CDeviceInUse` naming the
+    owner if another process has it), probes it (a clear :class:`~asyncdonkey.hw.i2c.I2CDeviceNotFound` if
+    nothing answers) and initialises it: MODE2 totem-pole outputs, every channel full-off (no stale pulse from
+    a previous process; a warning names the channels that were generating one) unless
+    ``reset_outputs=False``, then the frequency sequence, which leaves the chip awake with auto-increment on.
     """
 
     def __init__(
@@ -130,13 +152,20 @@ class PCA9685:
         self.prescale = prescale_for(frequency_hz, oscillator_hz)
         self.requested_frequency_hz = float(frequency_hz)
         self.name = f"PCA9685 at 0x{address:02X} on I2C bus {bus.bus_number}"
-        with bus.locked():
-            bus.probe_sync(address, MODE1, "PCA9685")
-            bus.write_byte_data_sync(address, MODE2, MODE2_OUTDRV)
-            if reset_outputs:
-                # a single-byte write: works before auto-increment is on
-                bus.write_byte_data_sync(address, ALL_LED_OFF_H, FULL_BIT)
-            self._write_prescale(self.prescale)
+        claimed = bus.claim(address, "PCA9685")  # before anything reaches the chip
+        try:
+            with bus.locked():
+                mode1 = bus.probe_sync(address, MODE1, "PCA9685")
+                bus.write_byte_data_sync(address, MODE2, MODE2_OUTDRV)
+                if reset_outputs:
+                    self._warn_of_pulses_left(mode1)
+                    # a single-byte write: works before auto-increment is on
+                    bus.write_byte_data_sync(address, ALL_LED_OFF_H, FULL_BIT)
+                self._write_prescale(self.prescale)
+        except BaseException:
+            if claimed:
+                bus.unclaim(address)
+            raise
 
     def __repr__(self) -> str:
         return f"<{self.name}, {self.frequency_hz:.2f} Hz>"
@@ -149,6 +178,31 @@ class PCA9685:
     @property
     def period_s(self) -> float:
         return 1.0 / self.frequency_hz
+
+    def _pulses_left_sync(self, mode1: int) -> dict[int, int]:
+        """The pulses (ticks, by channel) an awake chip is generating before the init, from its registers."""
+        if mode1 & (MODE1_SLEEP | MODE1_RESTART):
+            return {}  # asleep, or halted until a RESTART: no output
+        bus, addr = self.bus, self.address
+        if mode1 & MODE1_AI:  # two 32-byte bursts (the SMBus limit) cover the 64 LED registers
+            raw = bus.read_i2c_block_data_sync(addr, LED0_ON_L, 32) + bus.read_i2c_block_data_sync(
+                addr, LED0_ON_L + 32, 32
+            )
+        else:  # without auto-increment (as Donkeycar's Adafruit driver leaves it) one register per read
+            raw = bytes(bus.read_byte_data_sync(addr, LED0_ON_L + i) for i in range(4 * 16))
+        pulses = {ch: pulse_of(raw[4 * ch : 4 * ch + 4]) for ch in range(16)}
+        return {ch: p for ch, p in pulses.items() if p}
+
+    def _warn_of_pulses_left(self, mode1: int) -> None:
+        left = self._pulses_left_sync(mode1)
+        if left:
+            channels = ", ".join(f"channel {ch} ({p} ticks)" for ch, p in left.items())
+            logger.warning(
+                "%s was already generating pulses on %s, left by a program that has ended or one that takes no "
+                "device lock (Donkeycar, donkey calibrate); the init turns them off",
+                self.name,
+                channels,
+            )
 
     def _write_prescale(self, prescale: int) -> None:
         bus, addr = self.bus, self.address

@@ -583,7 +583,12 @@ class I2CSimulator:
                     folder = tempfile.mkdtemp(prefix="asyncdonkey-i2c-")
                     path = os.path.join(folder, "i2c.sock")
                 self._server = _BusServer(path, self)
-                threading.Thread(target=self._server.serve_forever, name="i2c-simulator-server", daemon=True).start()
+                threading.Thread(
+                    target=self._server.serve_forever,
+                    args=(SERVER_POLL_S,),
+                    name="i2c-simulator-server",
+                    daemon=True,
+                ).start()
                 self.endpoint = path
             return self.endpoint  # type: ignore[return-value]
 
@@ -616,6 +621,11 @@ class I2CSimulator:
 # [[address, read, hex data or read length], ...]} and its answer {"ok": [hex, ...]} (what each message read)
 # or {"errno": E}; {"buses": true} answers {"buses": [N, ...]}. JSON keeps the wire readable in a capture and
 # needs nothing but the standard library on either side.
+
+
+#: How often the serving thread looks for :meth:`I2CSimulator.close`: ``close()`` waits up to this long (the
+#: standard library's 0.5 s made every test with a served simulator half a second longer).
+SERVER_POLL_S = 0.02
 
 
 class _BusHandler(socketserver.StreamRequestHandler):

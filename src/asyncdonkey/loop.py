@@ -71,8 +71,9 @@ class Vehicle:
 
     #: a sync part holding the loop thread longer than this is named in a warning when it returns
     block_report_s = 0.25
-    #: checked mode for vehicles that do not say (``checked=None``): off on the car; asyncdonkey's pytest plugin
-    #: turns it on for a test session (its ``asyncdonkey_checked`` ini option and marker turn it off)
+    #: checked mode for vehicles that do not say (``checked=None``): off on the car and, unless they ask, in tests;
+    #: asyncdonkey's pytest plugin turns it on for a project (``asyncdonkey_checked = true`` in its pytest ini) or a
+    #: test (``@pytest.mark.asyncdonkey_checked``)
     checked_by_default: bool = False
 
     def __init__(

@@ -1,7 +1,8 @@
 """Checked mode: every part output checked against its channel's contract, a violation handled as the part's error.
 
-Checked mode is on by default under asyncdonkey's pytest plugin (so these tests say ``checked=`` wherever it
-matters, and one of them looks at the default itself), off on the car.
+Checked mode is on for this project's tests (its pytest ini says ``asyncdonkey_checked = true``; the plugin's
+default is off, tests/core/test_plugin.py), so these tests say ``checked=`` wherever it matters, and one of them
+looks at the default itself; off on the car.
 """
 
 from __future__ import annotations
@@ -221,7 +222,7 @@ async def test_wrapping_is_decided_at_drive_start_only_for_entries_with_contract
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_the_run_overrides_the_vehicle_which_overrides_the_default():
-    assert Vehicle.checked_by_default is True  # the plugin's default for this session
+    assert Vehicle.checked_by_default is True  # this project opts in (asyncdonkey_checked = true)
     v, _ = car([math.nan], checked=None)
     with pytest.raises(PartError):
         await v.run(20, 2)
@@ -268,9 +269,10 @@ def test_off_by_default_on_the_car():
     assert out.stdout.split("\n")[0] == "False False {}"
 
 
+@pytest.mark.asyncdonkey_checked(False)  # as in a session that did not opt in, for the sessions run in-process
 def test_the_plugin_changes_only_asyncdonkeys_default_and_puts_it_back(pytester):
     before = Vehicle.checked_by_default
-    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
+    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\nasyncdonkey_checked = true\n")
     pytester.makepyfile(
         """
         import pytest
@@ -290,14 +292,20 @@ def test_the_plugin_changes_only_asyncdonkeys_default_and_puts_it_back(pytester)
     pytester.runpytest().assert_outcomes(passed=3)
     assert Vehicle.checked_by_default is before
 
-    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\nasyncdonkey_checked = false\n")
-    pytester.makepyfile(
-        """
-        from asyncdonkey import Vehicle
+    for ini in ("", "asyncdonkey_checked = false\n"):  # not opted in, or opted out: off, and not touched
+        pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n" + ini)
+        pytester.makepyfile(
+            """
+            import pytest
+            from asyncdonkey import Vehicle
 
-        def test_off_for_the_project():
-            assert Vehicle.checked_by_default is False
-        """
-    )
-    pytester.runpytest().assert_outcomes(passed=1)
-    assert Vehicle.checked_by_default is before
+            def test_off_for_the_project():
+                assert Vehicle.checked_by_default is False
+
+            @pytest.mark.asyncdonkey_checked
+            def test_on_for_one_test():
+                assert Vehicle.checked_by_default is True
+            """
+        )
+        pytester.runpytest().assert_outcomes(passed=2)
+        assert Vehicle.checked_by_default is before

@@ -1,4 +1,5 @@
-"""The pytest plugin: opting in by marker, fixture or factory name; everything else untouched."""
+"""The pytest plugin: the virtual clock (by marker, fixture or factory name) and checked mode (by ini option or
+marker), each only for the projects and tests that ask; everything else untouched."""
 
 import asyncio
 
@@ -159,12 +160,15 @@ def test_without_other_hooks_plain_tests_run_on_the_default_loop(pytester):
     out = result.stdout.str()
     assert "PLAIN_LOOP asyncio" in out  # the event loop policy's loop, as pytest-asyncio makes without hooks
     assert "BOTH asyncdonkey" in out and "BOTH asyncio" in out
-    # naming a factory nobody provides fails as it does with pytest-asyncio alone, it is not silently skipped
+    # naming a factory nobody provides fails as it does with pytest-asyncio alone, it is not silently skipped:
+    # beside tests that asked for the virtual clock, with our message; alone, pytest-asyncio's own (no hook then)
     pytester.makepyfile(test_uv=PREAMBLE + UVLOOP_TEST)
-    result = pytester.runpytest("test_uv.py")
+    result = pytester.runpytest()
     result.stdout.fnmatch_lines(["*loop_factories*['uvloop']*needs a pytest_asyncio_loop_factories hook*"])
-    assert result.ret != 0
-    assert "skipped" not in result.stdout.str()
+    assert result.ret != 0 and "skipped" not in result.stdout.str()
+    result = pytester.runpytest("test_uv.py")
+    result.stdout.fnmatch_lines(["*loop_factories*requires at least one pytest_asyncio_loop_factories hook*"])
+    assert result.ret != 0 and "skipped" not in result.stdout.str()
 
 
 def test_virtual_clock_marker_contradicting_loop_factories_is_a_usage_error(pytester):
@@ -181,4 +185,174 @@ def test_virtual_clock_marker_contradicting_loop_factories_is_a_usage_error(pyte
     )
     result = pytester.runpytest()
     result.stdout.fnmatch_lines(["*marked virtual_clock, but*loop_factories*do not name 'virtual_clock'*"])
+    assert result.ret != 0
+
+
+# ------------------------------------------------- a project that does not use the virtual clock: as without us
+NOT_OURS_INI = """
+    [pytest]
+    asyncio_default_fixture_loop_scope = function
+    asyncio_default_test_loop_scope = session
+"""
+NOT_OURS_A = """
+    import asyncio
+    import pytest
+
+    def test_a1():
+        pass
+
+    @pytest.mark.asyncio
+    async def test_a2():
+        pytest.loop_a2 = asyncio.get_running_loop()
+        print("LOOP", type(pytest.loop_a2).__qualname__)
+
+    @pytest.mark.asyncio
+    async def test_a3(virtual_clock):
+        assert virtual_clock == "their own fixture"
+        print("LOOP", type(asyncio.get_running_loop()).__qualname__)
+
+    def test_a4():
+        pass
+"""
+NOT_OURS_B = """
+    import asyncio
+    import pytest
+
+    def test_b1():
+        pass
+
+    @pytest.mark.asyncio
+    async def test_b2():
+        print("SAME_LOOP_AS_A2", asyncio.get_running_loop() is pytest.loop_a2)
+"""
+NOT_OURS_CONFTEST = """
+    import pytest
+
+    @pytest.fixture
+    def virtual_clock():
+        return "their own fixture"
+"""
+
+
+@pytest.mark.realtime
+def test_a_project_that_never_asks_for_the_virtual_clock_runs_as_with_pytest_asyncio_alone(pytester):
+    """Its tests keep their order, ids and loops (pytest-asyncio's default, one loop for the session), and its own
+    fixture named ``virtual_clock`` stays its own. The plugin's hook, once registered, made pytest-asyncio
+    parametrize every asyncio test: a session-scoped loop then pulled test_b2 ahead of test_a3."""
+    pytester.makeini(NOT_OURS_INI)
+    pytester.makeconftest(NOT_OURS_CONFTEST)
+    pytester.makepyfile(test_a=NOT_OURS_A, test_b=NOT_OURS_B)
+
+    def run(*args: str) -> list[str]:
+        result = pytester.runpytest("-v", "-s", "-p", "no:cacheprovider", *args)
+        result.assert_outcomes(passed=6)
+        return [line for line in result.outlines if line.startswith("test_")]
+
+    alone = run("-p", "no:asyncdonkey")
+    assert run() == alone
+    assert alone == [
+        "test_a.py::test_a1 PASSED",
+        "test_a.py::test_a2 LOOP _UnixSelectorEventLoop",
+        "test_a.py::test_a3 LOOP _UnixSelectorEventLoop",
+        "test_a.py::test_a4 PASSED",
+        "test_b.py::test_b1 PASSED",
+        "test_b.py::test_b2 SAME_LOOP_AS_A2 True",
+    ]
+
+
+# -------------------------------------------------------------------------------------- checked mode: opt-in
+CAMERA_PROJECT = """
+    import numpy as np
+    import pytest
+    from asyncdonkey import Vehicle
+
+    class FakeCamera:
+        \"\"\"A project's stand-in camera: float64 zeros, or a tuple, where the car's camera gives uint8.\"\"\"
+
+        def __init__(self, frame):
+            self.frame = frame
+
+        def run(self):
+            return self.frame
+
+    FRAMES = {"float64": np.zeros((120, 160, 3)), "tuple": (0, 0, 0)}
+
+    async def drive(kind):
+        v = Vehicle()
+        v.add(FakeCamera(FRAMES[kind]), outputs=["cam/image_array"], name="camera")
+        report = await v.run(20, 3)
+        assert report.loops == 3 and report.part_errors == {}
+        return report
+
+    @pytest.mark.asyncio
+    @pytest.mark.virtual_clock
+    @pytest.mark.parametrize("kind", sorted(FRAMES))
+    async def test_fake_camera(kind):
+        assert not (await drive(kind)).checked
+
+    @pytest.mark.asyncio
+    @pytest.mark.virtual_clock
+    @pytest.mark.asyncdonkey_checked
+    async def test_marked_checked():
+        await drive("float64")
+
+    @pytest.mark.asyncio
+    @pytest.mark.virtual_clock
+    @pytest.mark.asyncdonkey_checked(False)
+    async def test_marked_unchecked():
+        assert not (await drive("tuple")).checked
+"""
+PLAIN_INI = "[pytest]\nasyncio_default_fixture_loop_scope = function\n"
+VIOLATION = "*ContractViolation: part 'camera' wrote channel 'cam/image_array': got *"
+
+
+def _failed(result: pytest.RunResult) -> list[str]:
+    """The ids of the failed tests, from the run's ``-rf`` summary."""
+    return [line.split(" ")[1] for line in result.outlines if line.startswith("FAILED ")]
+
+
+@pytest.mark.subprocess
+def test_checked_mode_is_off_unless_the_project_or_the_test_asks(pytester):
+    """A separate project (its own pytest process) whose fake camera breaks cam/image_array's contract: its tests
+    pass, as its car drives; the marker checks that one test, naming the channel."""
+    pytester.makeini(PLAIN_INI)
+    pytester.makepyfile(test_camera=CAMERA_PROJECT)
+    result = pytester.runpytest_subprocess("-rf", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=3, failed=1)
+    assert _failed(result) == ["test_camera.py::test_marked_checked"]
+    result.stdout.fnmatch_lines([VIOLATION + "float64*"])
+
+
+@pytest.mark.asyncdonkey_checked(False)  # the default of a session that did not opt in, for the one run in-process
+def test_the_ini_option_turns_checked_mode_on_for_the_project(pytester):
+    from asyncdonkey import Vehicle
+
+    before = Vehicle.checked_by_default
+    pytester.makeini(PLAIN_INI + "asyncdonkey_checked = true\n")
+    pytester.makepyfile(test_camera=CAMERA_PROJECT)
+    result = pytester.runpytest("-rf", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=1, failed=3)  # only the test marked asyncdonkey_checked(False) drives
+    assert _failed(result) == [
+        "test_camera.py::test_fake_camera[float64]",
+        "test_camera.py::test_fake_camera[tuple]",
+        "test_camera.py::test_marked_checked",
+    ]
+    for got in ("an array of dtype float64", "tuple of 3 items, not an array"):
+        result.stdout.fnmatch_lines([f"{VIOLATION}{got}*"])
+    assert Vehicle.checked_by_default is before  # put back when the session ended
+
+
+def test_a_marker_argument_that_is_not_a_bool_is_a_usage_error(pytester):
+    pytester.makeini(PLAIN_INI)
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.asyncdonkey_checked("yes")
+        def test_x():
+            pass
+        """
+    )
+    result = pytester.runpytest("-p", "no:cacheprovider")
+    result.stderr.fnmatch_lines(["*test_x: asyncdonkey_checked(on) takes True or False, got 'yes'*"])
     assert result.ret != 0

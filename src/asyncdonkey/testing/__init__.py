@@ -1,7 +1,9 @@
 """Testing support: a virtual-clock event loop, a pytest plugin and device models for ``asyncdonkey.hw``.
 
 The pytest plugin is registered through the ``pytest11`` entry point, so installing asyncdonkey makes the
-``virtual_clock`` marker and fixture available to any project's tests.
+``virtual_clock`` marker and fixture, and checked mode (``asyncdonkey_checked = true`` in a project's pytest ini,
+or the ``asyncdonkey_checked`` marker), available to any project's tests; a project that asks for neither runs
+as it would without asyncdonkey (``pytest_plugin``'s docstring, docs/testing.md).
 
 Device models behave like the hardware at the register or byte level, so the real drivers run against them:
 

@@ -1,6 +1,10 @@
-"""pytest plugin (entry point ``pytest11``): run chosen asyncio tests on :class:`VirtualClockLoop`.
+"""pytest plugin (entry point ``pytest11``): the virtual clock and checked mode, each for the tests that ask.
 
-Opt in per test, class or module, together with pytest-asyncio's own marker::
+Installing asyncdonkey loads this plugin into every pytest session of every project in that environment, so
+it changes nothing for a project, or a test, that did not ask for what it offers: it registers its markers, its
+``asyncdonkey_checked`` ini option and its ``virtual_clock`` fixture, and that is all.
+
+**The virtual clock.** Opt in per test, class or module, together with pytest-asyncio's own marker::
 
     @pytest.mark.asyncio
     @pytest.mark.virtual_clock
@@ -9,16 +13,17 @@ Opt in per test, class or module, together with pytest-asyncio's own marker::
 or ask for the ``virtual_clock`` fixture (it returns the running :class:`VirtualClockLoop`), or select the
 factory by name: ``@pytest.mark.asyncio(loop_factories=["virtual_clock"])``.
 
-Loop selection uses pytest-asyncio's ``pytest_asyncio_loop_factories`` hook (pytest-asyncio ≥ 1.4). Installing
-asyncdonkey must change nothing for the tests of other projects, yet pytest-asyncio calls that hook for every
-asyncio test as soon as any plugin implements it, takes the first answer (``firstresult``), and skips a test
-whose ``loop_factories`` names a factory missing from that answer. An ordinary implementation would therefore
-answer for other projects' tests (and, called before their own implementation, hide its factories: a
-``loop_factories=["uvloop"]`` test was skipped). So this plugin's implementation is a *wrapper* around all the
-others:
+Loop selection uses pytest-asyncio's ``pytest_asyncio_loop_factories`` hook (pytest-asyncio ≥ 1.4). As soon as
+any plugin implements that hook, pytest-asyncio calls it for every asyncio test, takes the first answer
+(``firstresult``), parametrizes the test by it (a ``loop_scope="session"`` test then moves: tests sharing a
+parametrized higher-scoped fixture are grouped), and skips a test whose ``loop_factories`` names a factory
+missing from that answer. So the implementation is not registered at all until the first collected test asks
+for the virtual clock (a project that never does keeps pytest-asyncio's own path, test order and loops; in one
+that does, the asyncio tests collected before that one stay unparametrized, so a session-scoped loop is made anew
+once between them and the later ones), and once registered it is a *wrapper* around all the others:
 
 * a test that did not opt in gets the other implementations' answer untouched. Only when no other
-  implementation exists is there nothing to pass on; then it answers ``{"asyncio": <the policy's new loop>}``,
+  implementation exists is there nothing to pass on; then it answers ``{"asyncio": asyncio.new_event_loop}``,
   the loop pytest-asyncio makes without any hook, and a ``loop_factories`` selection fails as it would with
   no hook at all;
 * a test that opted in by the marker or the fixture (and named no factories) gets only ``virtual_clock``;
@@ -27,14 +32,16 @@ others:
 
 The hook is declared ``optionalhook=True`` so this plugin loads harmlessly where pytest-asyncio is absent.
 
-**Checked mode.** Under this plugin every :class:`~asyncdonkey.loop.Vehicle` that does not say otherwise drives in
-checked mode: each part output is checked against its channel's contract and a value that breaks it fails the
-part that wrote it (``asyncdonkey.contracts``), so a test finds the part that writes a NaN throttle, not the
-actuator three parts later. Only asyncdonkey's own default is changed (:attr:`Vehicle.checked_by_default`, a class
-attribute, for the session, put back when it ends): nothing is patched or set in the environment, so a project
-that does not drive a Vehicle sees no difference. Turn it off for a test with
-``@pytest.mark.asyncdonkey_checked(False)``, for a vehicle with ``Vehicle(checked=False)`` or
-``run(checked=False)``, for a whole project with ``asyncdonkey_checked = false`` in its pytest ini.
+**Checked mode** (opt-in). With ``asyncdonkey_checked = true`` in a project's pytest ini, or for one test,
+class or module with ``@pytest.mark.asyncdonkey_checked``, every :class:`~asyncdonkey.loop.Vehicle` that does not
+say otherwise drives in checked mode: each part output is checked against its channel's contract and a value that
+breaks it fails the part that wrote it (``asyncdonkey.contracts``), so a test finds the part that writes a NaN
+throttle, not the actuator three parts later. Off by default, as on the car: a project's fake camera returning
+float64 zeros drives its car, and its tests pass, until the project asks for the contracts to be enforced.
+Only asyncdonkey's own default is changed (:attr:`Vehicle.checked_by_default`, a class attribute, for the
+session or the test, put back after it): nothing is patched or set in the environment.
+``@pytest.mark.asyncdonkey_checked(False)`` turns it off for a test of a project that opted in;
+``Vehicle(checked=...)`` and ``run(checked=...)`` still decide for themselves.
 """
 
 from __future__ import annotations
@@ -54,17 +61,19 @@ FACTORY_NAME = "virtual_clock"
 #: waiting for something that never comes beside a periodic task fails in a second instead of running away
 TEST_BUDGET_S = 3600.0
 _DEFAULT_NAME = "asyncio"
-#: the ini option and the marker that turn checked mode off (or on) for a project or a test
+#: the ini option and the marker that turn checked mode on (or, the marker with False, off) for a project or a test
 CHECKED_OPTION = CHECKED_MARKER = "asyncdonkey_checked"
+#: the name the loop-factories hook implementation is registered under, once a test asks for the virtual clock
+FACTORIES_PLUGIN = "asyncdonkey-virtual-clock-factories"
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addini(
         CHECKED_OPTION,
-        "drive asyncdonkey Vehicles in checked mode during tests (part outputs checked against their channels' "
-        "contracts); default true",
+        "drive asyncdonkey Vehicles in checked mode during tests (each part output checked against its channel's "
+        "contract, a value that breaks it fails the part); default false",
         type="bool",
-        default=True,
+        default=False,
     )
 
 
@@ -76,12 +85,14 @@ def pytest_configure(config: pytest.Config) -> None:
     )
     config.addinivalue_line(
         "markers",
-        f"{CHECKED_MARKER}(on=True): drive asyncdonkey Vehicles in this test in checked mode or, with False, not "
-        "(a Vehicle(checked=...) or run(checked=...) still decides for itself)",
+        f"{CHECKED_MARKER}(on=True): drive asyncdonkey Vehicles in this test in checked mode (part outputs checked "
+        "against their channels' contracts) or, with False, not (Vehicle(checked=...) and run(checked=...) still "
+        "decide for themselves)",
     )
-    before = Vehicle.checked_by_default
-    Vehicle.checked_by_default = bool(config.getini(CHECKED_OPTION))
-    config.add_cleanup(lambda: setattr(Vehicle, "checked_by_default", before))
+    if config.getini(CHECKED_OPTION):  # not opted in: asyncdonkey's default is left as it is
+        before = Vehicle.checked_by_default
+        Vehicle.checked_by_default = True
+        config.add_cleanup(lambda: setattr(Vehicle, "checked_by_default", before))
 
 
 def _checked_by_marker(item: pytest.Item) -> bool | None:
@@ -97,7 +108,7 @@ def _checked_by_marker(item: pytest.Item) -> bool | None:
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Generator[None, object, object]:
-    """A test marked ``asyncdonkey_checked(False)`` (or ``True``) runs, fixtures included, with that default."""
+    """A test marked ``asyncdonkey_checked`` (or ``(False)``) runs, fixtures included, with that default."""
     on = _checked_by_marker(item)
     if on is None:
         return (yield)
@@ -109,10 +120,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         Vehicle.checked_by_default = before
 
 
-def _policy_loop() -> asyncio.AbstractEventLoop:
-    return asyncio.get_event_loop_policy().new_event_loop()
-
-
+# ------------------------------------------------------------------------------------------- the virtual clock
 def _selected(item: pytest.Item) -> list[str] | None:
     """The factory names the test's ``asyncio`` marker selects (``loop_factories``), or ``None``."""
     marker = item.get_closest_marker("asyncio")
@@ -120,6 +128,25 @@ def _selected(item: pytest.Item) -> list[str] | None:
     if names is None or isinstance(names, str):
         return None if names is None else [names]
     return list(names)
+
+
+def _uses_our_fixture(item: pytest.Item) -> bool:
+    """Whether the test requests this plugin's ``virtual_clock`` fixture (a project's own fixture of that name,
+    which overrides ours, does not opt its tests in)."""
+    if FACTORY_NAME not in getattr(item, "fixturenames", ()):
+        return False
+    info = getattr(item, "_fixtureinfo", None)
+    defs = info.name2fixturedefs.get(FACTORY_NAME, ()) if info is not None else ()
+    return bool(defs) and getattr(defs[-1].func, "__module__", None) == __name__
+
+
+def _asks_for_virtual_clock(item: pytest.Item) -> bool:
+    selected = _selected(item)
+    return (
+        item.get_closest_marker("virtual_clock") is not None
+        or (selected is not None and FACTORY_NAME in selected)
+        or _uses_our_fixture(item)
+    )
 
 
 def _others_implement(item: pytest.Item) -> bool:
@@ -146,35 +173,52 @@ def _virtual_factory(item: pytest.Item) -> Any:
     return virtual_loop_factory(**kwargs)
 
 
-@pytest.hookimpl(wrapper=True, optionalhook=True)
-def pytest_asyncio_loop_factories(
-    config: pytest.Config, item: pytest.Item
-) -> Generator[None, Mapping[str, Any] | None, Mapping[str, Any] | None]:
-    answer = yield
-    selected = _selected(item)
-    by_marker = item.get_closest_marker("virtual_clock") is not None
-    by_fixture = FACTORY_NAME in getattr(item, "fixturenames", ())
-    if selected is not None and FACTORY_NAME in selected:
-        factories = dict(answer) if answer else {_DEFAULT_NAME: _policy_loop}
-        factories[FACTORY_NAME] = _virtual_factory(item)
-        return factories
-    if selected is None and (by_marker or by_fixture):
-        return {FACTORY_NAME: _virtual_factory(item)}
-    if by_marker:
-        raise pytest.UsageError(
-            f"{item.nodeid}: marked virtual_clock, but its asyncio marker's loop_factories {selected} do not "
-            f"name {FACTORY_NAME!r}"
-        )
-    # not ours: whatever the project's own implementations said, untouched
-    if answer is not None or _others_implement(item):
-        return answer
-    if selected is not None:
-        pytest.fail(
-            f"{item.nodeid}: mark.asyncio 'loop_factories' {selected} needs a pytest_asyncio_loop_factories hook "
-            f"implementation that provides them (asyncdonkey's plugin provides only {FACTORY_NAME!r})",
-            pytrace=False,
-        )
-    return {_DEFAULT_NAME: _policy_loop}
+class _LoopFactories:
+    """The ``pytest_asyncio_loop_factories`` implementation, registered by the first test that asks for the
+    virtual clock (see the module's docstring): until then pytest-asyncio sees no implementation at all."""
+
+    @pytest.hookimpl(wrapper=True, optionalhook=True)
+    def pytest_asyncio_loop_factories(
+        self, config: pytest.Config, item: pytest.Item
+    ) -> Generator[None, Mapping[str, Any] | None, Mapping[str, Any] | None]:
+        answer = yield
+        selected = _selected(item)
+        if selected is not None and FACTORY_NAME in selected:
+            factories = dict(answer) if answer else {_DEFAULT_NAME: asyncio.new_event_loop}
+            factories[FACTORY_NAME] = _virtual_factory(item)
+            return factories
+        by_marker = item.get_closest_marker("virtual_clock") is not None
+        if selected is None and (by_marker or _uses_our_fixture(item)):
+            return {FACTORY_NAME: _virtual_factory(item)}
+        if by_marker:
+            raise pytest.UsageError(
+                f"{item.nodeid}: marked virtual_clock, but its asyncio marker's loop_factories {selected} do not "
+                f"name {FACTORY_NAME!r}"
+            )
+        # not ours: whatever the project's own implementations said, untouched
+        if answer is not None or _others_implement(item):
+            return answer
+        if selected is not None:
+            pytest.fail(
+                f"{item.nodeid}: mark.asyncio 'loop_factories' {selected} needs a pytest_asyncio_loop_factories "
+                f"hook implementation that provides them (asyncdonkey's plugin provides only {FACTORY_NAME!r})",
+                pytrace=False,
+            )
+        return {_DEFAULT_NAME: asyncio.new_event_loop}
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> Generator[None, None, None]:
+    """Registers :class:`_LoopFactories` before pytest-asyncio parametrizes the first test that asks for the
+    virtual clock (a wrapper runs before its ``tryfirst`` implementation)."""
+    manager = metafunc.config.pluginmanager
+    if (
+        pytest_asyncio is not None
+        and not manager.has_plugin(FACTORIES_PLUGIN)
+        and _asks_for_virtual_clock(metafunc.definition)
+    ):
+        manager.register(_LoopFactories(), name=FACTORIES_PLUGIN)
+    return (yield)
 
 
 try:

@@ -21,6 +21,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from .buildscope import note_vehicle
 from .clock import get_clock
 from .contracts import Contract, Contracts
 from .drive import Drive, latency_recorder
@@ -108,6 +109,7 @@ class Vehicle:
         self._drive: Drive | None = None
         self._pending_stop: str | None = None
         self._offload = make_offload(self._executor_for_offload)
+        note_vehicle(self)  # a build() that raises after making it: `asyncdonkey run` shuts its parts down
 
     @property
     def drive(self) -> Drive | None:

@@ -33,10 +33,12 @@ from types import ModuleType
 from typing import Any, NoReturn
 
 from .. import __version__
+from ..buildscope import BuildScope, collecting
 from ..errors import AsyncdonkeyError
 from ..extras import MissingExtra, extra_for_module
 from ..loop import PartError, Vehicle, run_blocking
 from ..options import BadValue, non_negative_int, option, positive_float
+from ..safety.process import SafetyProcessError
 
 __all__ = ["CarFileError", "car_rate_hz", "load_car", "main"]
 
@@ -196,12 +198,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     car_args = list(getattr(args, "car_args", []))
-    try:
-        vehicle, module = load_car(args.car, car_args)
-        rate = args.hz if args.hz is not None else car_rate_hz(module, args.car)
-    except CarFileError as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    with collecting() as opened:  # what build() opens, closed again if the car refuses to start
+        try:
+            vehicle, module = load_car(args.car, car_args)
+            rate = args.hz if args.hz is not None else car_rate_hz(module, args.car)
+        except (CarFileError, MissingExtra) as exc:
+            print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+            return _refused(opened, EXIT_USAGE)
+        except SystemExit as exc:  # the car's own option parser: its usage error or --help, already printed
+            return _refused(opened, _exit_status(exc))
+        except KeyboardInterrupt:
+            return _refused(opened, EXIT_INTERRUPTED)
     try:
         report = run_blocking(
             vehicle.run_with_signals(
@@ -217,6 +224,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
             traceback.print_exception(exc, file=sys.stderr)
         print(f"asyncdonkey: {exc}", file=sys.stderr)
         return _leave(1)
+    except (AsyncdonkeyError, SafetyProcessError) as exc:  # the drive refused to start; run() shut the parts down
+        if args.verbose:
+            traceback.print_exception(exc, file=sys.stderr)
+        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        return _leave(EXIT_USAGE)
+    except Exception:  # a fault of ours: its traceback, and still no process left running
+        traceback.print_exc(file=sys.stderr)
+        return _leave(1)
     if report.shutdown_abandoned:
         print(
             f"asyncdonkey: shutdown of {', '.join(map(repr, report.shutdown_abandoned))} did not finish in time",
@@ -226,27 +241,64 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return _leave(0)
 
 
+#: the exit status of a ``run`` interrupted by Ctrl-C while the car was being built (128 + SIGINT)
+EXIT_INTERRUPTED = 130
+
+
+def _exit_status(exc: SystemExit) -> int:
+    """The status a ``SystemExit`` asks for, as the interpreter reads it (a message is printed, status 1)."""
+    if exc.code is None:
+        return 0
+    if isinstance(exc.code, int):
+        return exc.code
+    print(exc.code, file=sys.stderr)
+    return 1
+
+
+def _refused(opened: BuildScope, status: int) -> int:
+    """The car refused to start (its one line is printed): close what its build() opened (its vehicles' parts,
+    Zenoh sessions), then leave with ``status`` even if a thread it started is still running."""
+    opened.close()
+    return _leave(status, if_stuck=status)
+
+
 #: how long the interpreter may take to exit after a drive before the process is ended without it
 EXIT_GRACE_S = 2.0
 
+#: set by :func:`main` when it runs as the program (``argv`` from the command line): only then may the exit guard
+#: end the process (a test or an application calling ``main([...])`` in its own process is never ended by it)
+_guard_exit = False
 
-def _leave(status: int) -> int:
+
+def _leave(status: int, *, if_stuck: int | None = None) -> int:
     """Return ``status``, guarding the interpreter's exit: a part that left a thread busy (a hung executor
-    call, which the interpreter joins at exit) must not keep the process alive after the report. A daemon
-    timer ends the process ``EXIT_GRACE_S`` after the drive if the normal exit has not happened by then."""
+    call, a Zenoh session's callback threads, which the interpreter joins at exit) must not keep the process
+    alive after the report or the error. A daemon timer ends the process ``EXIT_GRACE_S`` later, with
+    ``if_stuck`` (default: ``status``, or 1 after a drive that ended well), if the normal exit has not happened
+    by then. Armed only when ``main`` is the program."""
+    if not _guard_exit:
+        return status
+    stuck_status = if_stuck if if_stuck is not None else (status or 1)
 
     def guard() -> None:
         time.sleep(EXIT_GRACE_S)
-        busy = [t.name for t in threading.enumerate() if t.is_alive() and not t.daemon]
+        main = threading.main_thread()
+        busy = [t.name for t in threading.enumerate() if t.is_alive() and not t.daemon and t is not main]
         print(f"asyncdonkey: exiting without waiting for threads still running: {', '.join(busy)}", file=sys.stderr)
-        sys.stderr.flush()
-        os._exit(status or 1)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # pragma: no cover - a closed stream: nothing more to say
+                pass
+        os._exit(stuck_status)
 
     threading.Thread(target=guard, name="asyncdonkey-exit-guard", daemon=True).start()
     return status
 
 
 def main(argv: list[str] | None = None) -> int:
+    global _guard_exit
+    _guard_exit = argv is None
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)

@@ -33,6 +33,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from ...buildscope import register_close
 from ...errors import AsyncdonkeyError
 from ...extras import require
 from .pairing import COMMAND_CHANNELS
@@ -235,20 +236,28 @@ class ZenohLink:
         else:
             self.exposure = []  # a session given to us: its owner knows how it is configured
         self.session = session
-        self.zid = str(session.zid())
         self._users = 0
         self._lock = threading.Lock()
         self._rtts: collections.deque[float] = collections.deque(maxlen=rtt_window)
         self.pings_sent = 0
         self.pongs_received = 0
-        self._ping_pub = session.declare_publisher(f"{prefix}/{INTERNAL}/ping", express=True)
-        self._decls = [
-            session.declare_subscriber(
-                f"{prefix}/{INTERNAL}/ping", self._on_ping, allowed_origin=zenoh.Locality.REMOTE
-            ),
-            session.declare_subscriber(f"{prefix}/{INTERNAL}/pong/{self.zid}", self._on_pong),
-        ]
         self._closed = False
+        self._decls: list[Any] = []
+        try:
+            self.zid = str(session.zid())
+            self._ping_pub = session.declare_publisher(f"{prefix}/{INTERNAL}/ping", express=True)
+            self._decls.append(self._ping_pub)
+            self._decls.append(
+                session.declare_subscriber(
+                    f"{prefix}/{INTERNAL}/ping", self._on_ping, allowed_origin=zenoh.Locality.REMOTE
+                )
+            )
+            self._decls.append(session.declare_subscriber(f"{prefix}/{INTERNAL}/pong/{self.zid}", self._on_pong))
+        except BaseException:
+            self.close()  # the session we opened has threads that would keep the process alive
+            raise
+        if self._owned:  # a car whose build() raises after this: `asyncdonkey run` closes the session
+            register_close(f"the Zenoh session of ZenohLink {prefix!r}", self.close)
 
     def key(self, channel: str) -> str:
         """The key expression of a Memory channel: ``<prefix>/<channel>``."""
@@ -342,7 +351,7 @@ class ZenohLink:
             if self._closed:
                 return
             self._closed = True
-        for d in [*self._decls, self._ping_pub]:
+        for d in reversed(self._decls):  # the subscribers, then the publisher
             try:
                 d.undeclare()
             except Exception:

@@ -128,9 +128,15 @@ class ZenohPublisher:
         self.max_interval_s = float(max_interval_s)
         self.jpeg = jpeg
         keys = [self.group] if self.group is not None else self.channels
-        self._pubs = [
-            link.session.declare_publisher(link.key(k), congestion_control=zenoh.CongestionControl.DROP) for k in keys
-        ]
+        self._pubs: list[Any] = []
+        try:
+            for k in keys:
+                self._pubs.append(
+                    link.session.declare_publisher(link.key(k), congestion_control=zenoh.CongestionControl.DROP)
+                )
+        except BaseException:
+            self.shutdown()  # undeclares what was declared and gives the link back: a failed part holds nothing
+            raise
         self._seq = [0] * len(keys)
         #: drawn at start, sent with every sample: receivers tell a restarted publisher from late samples
         self.source = random.getrandbits(63) + 1
@@ -315,7 +321,7 @@ class ZenohSubscriber:
             raise ValueError(f"ZenohSubscriber: channels must be a non-empty list of names, got {channels!r}")
         self.group = _group_name(group, channels, "ZenohSubscriber")
         link.guard_commands([*channels, *([self.group] if self.group else [])], f"ZenohSubscriber {list(channels)}")
-        self.link = link.acquire()
+        self.link = link
         self.channels = tuple(channels)
         self.late_after_s = float(late_after_s)
         self.ping_every_s = float(ping_every_s)
@@ -344,9 +350,14 @@ class ZenohSubscriber:
         self.on_arrival = on_arrival
         self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
-        self._sub = link.session.declare_subscriber(
-            self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
-        )
+        link.acquire()  # taken last, and given back if the subscription fails: a failed part holds no session
+        try:
+            self._sub = link.session.declare_subscriber(
+                self.key_expr, self._on_sample, allowed_origin=zenoh.Locality.REMOTE
+            )
+        except BaseException:
+            link.release()
+            raise
 
     # -- contracts -------------------------------------------------------------------------------------
     def use_contracts(self, contracts: Contracts) -> None:

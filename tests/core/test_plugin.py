@@ -286,15 +286,15 @@ CAMERA_PROJECT = """
 
     @pytest.mark.asyncio
     @pytest.mark.virtual_clock
-    @pytest.mark.parametrize("kind", sorted(FRAMES))
-    async def test_fake_camera(kind):
-        assert not (await drive(kind)).checked
+    @pytest.mark.asyncdonkey_checked
+    async def test_marked_checked():
+        await drive("float64")  # (runs first: the tests after it are not checked)
 
     @pytest.mark.asyncio
     @pytest.mark.virtual_clock
-    @pytest.mark.asyncdonkey_checked
-    async def test_marked_checked():
-        await drive("float64")
+    @pytest.mark.parametrize("kind", sorted(FRAMES))
+    async def test_fake_camera(kind):
+        assert not (await drive(kind)).checked
 
     @pytest.mark.asyncio
     @pytest.mark.virtual_clock
@@ -333,9 +333,9 @@ def test_the_ini_option_turns_checked_mode_on_for_the_project(pytester):
     result = pytester.runpytest("-rf", "-p", "no:cacheprovider")
     result.assert_outcomes(passed=1, failed=3)  # only the test marked asyncdonkey_checked(False) drives
     assert _failed(result) == [
+        "test_camera.py::test_marked_checked",
         "test_camera.py::test_fake_camera[float64]",
         "test_camera.py::test_fake_camera[tuple]",
-        "test_camera.py::test_marked_checked",
     ]
     for got in ("an array of dtype float64", "tuple of 3 items, not an array"):
         result.stdout.fnmatch_lines([f"{VIOLATION}{got}*"])

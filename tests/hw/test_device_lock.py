@@ -165,22 +165,46 @@ def test_a_bus_no_other_process_can_reach_has_nothing_to_lock() -> None:
     bus.close()
 
 
-def test_lock_identities_real_bus_served_model_and_unrelated_models() -> None:
+def test_a_served_model_is_one_chip_for_the_server_and_its_clients_and_unrelated_models_never_meet() -> None:
+    from asyncdonkey.testing.i2c_models import RemoteI2CSimulator
+
     a, b = I2CSimulator(), I2CSimulator()
     a.bus(1), b.bus(1)
     a.serve(), b.serve()
     try:
-        from asyncdonkey.testing.i2c_models import RemoteI2CSimulator
-
         here = I2CBus(1, smbus_factory=a.smbus).lock_path(0x40)
         there = I2CBus(1, smbus_factory=RemoteI2CSimulator(a.endpoint or "").smbus).lock_path(0x40)
         unrelated = I2CBus(1, smbus_factory=b.smbus).lock_path(0x40)
-        assert here == there  # the serving process and its clients name the same chip the same way
+        assert here == there == f"{a.endpoint}.i2c-1-0x40.lock"  # beside the socket
         assert here != unrelated
         assert here != I2CBus(1, smbus_factory=a.smbus).lock_path(0x41)
-        assert os.path.dirname(here or "") == owner_lock.lock_dir()
     finally:
-        a.close(), b.close()
+        b.close()
+    Path(here).touch()  # as a killed owner leaves it
+    folder = os.path.dirname(here)
+    a.close()
+    assert not os.path.exists(here) and not os.path.exists(folder)  # the simulator's locks go with it
+
+
+def test_a_bus_another_process_opens_its_own_way_is_named_by_a_digest_of_that_way() -> None:
+    sim = I2CSimulator()
+    sim.bus(1)
+
+    class Opener:
+        def __init__(self, where: str) -> None:
+            self.where = where
+
+        def smbus(self, n: int):
+            return sim.smbus(n)
+
+        def cross_process_opener(self, n: int) -> dict:
+            return {"opener": "somewhere:open", "args": [self.where, n]}
+
+    one = I2CBus(1, smbus_factory=Opener("x").smbus).lock_path(0x40)
+    assert one == I2CBus(1, smbus_factory=Opener("x").smbus).lock_path(0x40)
+    assert one != I2CBus(1, smbus_factory=Opener("y").smbus).lock_path(0x40)
+    assert os.path.dirname(one or "") == owner_lock.lock_dir()
+    assert os.path.basename(one or "").startswith("asyncdonkey-i2c-1-")
 
 
 def test_a_real_bus_is_named_by_its_device(monkeypatch) -> None:

@@ -238,21 +238,27 @@ class I2CBus:
     def lock_path(self, address: int) -> str | None:
         """The lock file that makes one process the owner of the chip at ``address`` on this bus.
 
-        A real bus is named by its device (``/dev/i2c-1`` → ``asyncdonkey-i2c-1-0x40.lock``). A simulated bus
-        another process can open (a served simulator, from the serving process and from its clients alike) is
-        named by how it is opened (:meth:`cross_process_spec`: the socket and the bus number), so the processes
-        sharing one served model share the lock and unrelated simulators never meet. ``None`` where no other
-        process can reach the bus (an in-process simulator): there is nothing to guard.
+        A real bus is named by its device: ``/dev/i2c-1`` → ``asyncdonkey-i2c-1-0x40.lock`` in
+        :func:`~asyncdonkey.hw.owner_lock.lock_dir`. A simulated bus that another process can open (a served
+        simulator, from the serving process and from its clients alike) is named by how it is opened: its
+        factory's ``device_lock_path(bus_number, address)`` (a served simulator's: beside its socket, removed
+        with it), else a digest of :meth:`cross_process_spec`. So the processes sharing one served model share
+        its locks, and unrelated simulators never meet. ``None`` where no other process can reach the bus (an in-process
+        simulator): there is nothing to guard.
         """
         spec = self.cross_process_spec()
         if spec is None:
             return None
+        name = f"asyncdonkey-i2c-{self.bus_number}-0x{address:02x}.lock"
         if spec.get("path") == f"/dev/i2c-{self.bus_number}":
-            name = f"asyncdonkey-i2c-{self.bus_number}-0x{address:02x}.lock"
-        else:
-            digest = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
-            name = f"asyncdonkey-i2c-{self.bus_number}-{digest}-0x{address:02x}.lock"
-        return os.path.join(owner_lock.lock_dir(), name)
+            return os.path.join(owner_lock.lock_dir(), name)
+        owner = getattr(self._factory, "__self__", self._factory)
+        path_of = getattr(owner, "device_lock_path", None)
+        path = path_of(self.bus_number, address) if callable(path_of) else None
+        if isinstance(path, str):
+            return path
+        digest = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+        return os.path.join(owner_lock.lock_dir(), f"asyncdonkey-i2c-{self.bus_number}-{digest}-0x{address:02x}.lock")
 
     def claim(self, address: int, what: str = "") -> bool:
         """Make this process the owner of the chip at ``address``; drivers call it before sending the chip anything.

@@ -571,6 +571,12 @@ class I2CSimulator:
             return None
         return {"opener": f"{__name__}:open_served_smbus", "args": [self.endpoint, bus]}
 
+    def device_lock_path(self, bus: int, address: int) -> str | None:
+        """The lock file that makes one process the owner of a chip on these buses, for the drivers of every
+        process that opens them (:meth:`~asyncdonkey.hw.i2c.I2CBus.lock_path`): beside the socket, named after
+        it (so two simulators never share one), removed by :meth:`close`. ``None`` until served."""
+        return None if self.endpoint is None else _device_lock_path(self.endpoint, bus, address)
+
     def serve(self, path: str | None = None) -> str:
         """Serve these buses on a Unix socket (a fresh temporary one unless ``path``); returns its path.
 
@@ -604,9 +610,13 @@ class I2CSimulator:
                 with contextlib.suppress(OSError):
                     conn.shutdown(socket.SHUT_RDWR)
             if path is not None:
+                folder, mine = os.path.split(path)
                 with contextlib.suppress(OSError):
                     os.unlink(path)
-                    os.rmdir(os.path.dirname(path))
+                    for name in os.listdir(folder):  # the device locks of these buses (device_lock_path)
+                        if name.startswith(mine + ".i2c-") and name.endswith(".lock"):
+                            os.unlink(os.path.join(folder, name))
+                    os.rmdir(folder)
 
     def __enter__(self) -> I2CSimulator:
         return self
@@ -764,6 +774,14 @@ class RemoteI2CSimulator:
     def cross_process_opener(self, bus: int) -> dict[str, Any]:
         """Another process opens the same served buses the same way."""
         return {"opener": f"{__name__}:open_served_smbus", "args": [self.endpoint, bus]}
+
+    def device_lock_path(self, bus: int, address: int) -> str:
+        """The same lock file as the serving simulator's :meth:`I2CSimulator.device_lock_path`."""
+        return _device_lock_path(self.endpoint, bus, address)
+
+
+def _device_lock_path(endpoint: str, bus: int, address: int) -> str:
+    return f"{endpoint}.i2c-{int(bus)}-0x{int(address):02x}.lock"
 
 
 def open_served_smbus(endpoint: str, bus: int) -> SimulatedSMBus:

@@ -365,6 +365,20 @@ class McapRecord(Mapping[str, Any]):
         return bytes(self._images[key].data)
 
 
+def _time_map(path: Path, clock: dict[str, str] | None) -> Any:
+    """The recording's clock mapping (a :class:`~.encode.TimeMap`), or ``None`` when it has none or it is damaged
+    (metadata records lie outside the chunks, with no CRC): the records' log times do not need it."""
+    from .encode import TimeMap
+
+    if not clock:
+        return None
+    try:
+        return TimeMap.from_metadata(clock)
+    except (KeyError, ValueError) as exc:
+        _warn_once(path, -2, f"the {CLOCK_METADATA} metadata is damaged ({_why(exc)}); left out")
+        return None
+
+
 class McapTub:
     """A recording seen as tub records (see the module docstring); ``inputs`` are its Memory channels."""
 
@@ -385,10 +399,7 @@ class McapTub:
             t[1:] for t in self.info.topics if t.startswith("/") and not t.startswith(("/asyncdonkey/", "/gps/fix"))
         ]
         self.metadata: dict[str, str] = self.info.metadata.get(SESSION_METADATA, {})
-        clock = self.info.metadata.get(CLOCK_METADATA)
-        from .encode import TimeMap
-
-        self.times = TimeMap.from_metadata(clock) if clock else None
+        self.times = _time_map(self.path, self.info.metadata.get(CLOCK_METADATA))
 
     def records(self) -> Iterator[McapRecord]:
         image_topic = topic_for(self.image_key)

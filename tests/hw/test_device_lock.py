@@ -265,6 +265,45 @@ def test_pulses_left_without_auto_increment_are_read_one_register_at_a_time(capl
     assert pca.pulse(5) == 0
 
 
+@pytest.fixture(scope="module")
+def served_once() -> Iterator[I2CSimulator]:
+    sim = I2CSimulator()
+    sim.attach(PCA9685Model(), address=0x40, bus=1)
+    sim.serve()
+    yield sim
+    sim.close()
+
+
+@given(st.lists(st.tuples(st.booleans(), st.integers(0, 3)), max_size=24))
+def test_in_one_process_the_lock_is_held_exactly_while_some_bus_claims_the_chip(served_once, ops) -> None:
+    """Any order of opening and closing buses that claim one chip: the lock (and its file) is held while one
+    of them claims it, and the last one to close lets it go."""
+    path = lock_path_of(served_once)
+    buses: dict[int, I2CBus] = {}
+    try:
+        for opening, i in ops:
+            if opening and i not in buses:
+                buses[i] = I2CBus(1, smbus_factory=served_once.smbus)
+                assert buses[i].claim(0x40, "PCA9685") and not buses[i].claim(0x40, "PCA9685")
+            elif not opening and i in buses:
+                buses.pop(i).close()
+            assert owner_lock.held().get(path, 0) == len(buses)
+            assert os.path.exists(path) == bool(buses)
+    finally:
+        for bus in buses.values():
+            bus.close()
+    assert path not in owner_lock.held() and not os.path.exists(path)
+
+
+def test_a_closed_bus_claims_nothing(served) -> None:
+    sim, _ = served
+    bus = I2CBus(1, smbus_factory=sim.smbus)
+    bus.close()
+    with pytest.raises(I2CError, match=r"I2C bus 1: claim of 0x40 on a closed bus"):
+        bus.claim(0x40)
+    assert lock_path_of(sim) not in owner_lock.held()
+
+
 @given(st.binary(min_size=4, max_size=4))
 def test_the_driver_reads_a_channel_s_pulse_as_the_chip_generates_it(registers: bytes) -> None:
     model = PCA9685Model()

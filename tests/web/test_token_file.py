@@ -63,6 +63,13 @@ def test_a_file_without_a_usable_token_is_refused_and_left_alone(tmp_path, text)
     assert path.read_text() == text
 
 
+def test_a_binary_file_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "token"
+    path.write_bytes(b"\xff\xfebinary-not-a-token")  # not UTF-8: no token, however printable the rest
+    path.chmod(0o600)
+    assert "at least 8 printable characters" in refusal(path)
+
+
 def test_a_missing_folder_is_named(tmp_path):
     with pytest.raises(WebConfigError, match="does not exist"):
         token_from_file(tmp_path / "nope" / "token")

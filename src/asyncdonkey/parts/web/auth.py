@@ -114,7 +114,10 @@ def _read_token_file(p: Path) -> str:
         data = os.read(fd, _TOKEN_FILE_MAX + 1)
     finally:
         os.close(fd)
-    token = data.decode("utf-8", errors="replace").strip()
+    try:
+        token = data.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        token = ""  # not text: refused below, as any file that holds no token
     if len(data) > _TOKEN_FILE_MAX or len(token) < 8 or any(c.isspace() for c in token) or not token.isprintable():
         raise WebConfigError(
             f"web token file {str(p)!r}: expected one token of at least 8 printable characters without spaces"

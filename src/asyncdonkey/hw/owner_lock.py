@@ -199,7 +199,8 @@ class _ProcessLocks:
     """The locks this process holds: path → [fd, users]."""
 
     def __init__(self) -> None:
-        self._mutex = threading.Lock()
+        # re-entrant: a bus collected by the garbage collector while this thread holds it releases its claims
+        self._mutex = threading.RLock()
         self._held: dict[str, list[int]] = {}
 
     def acquire(self, path: str, device: str) -> None:
@@ -230,7 +231,7 @@ class _ProcessLocks:
 
     def forget_in_child(self) -> None:
         """After a fork: the child closes its copies (the parent still holds the locks) and owns nothing."""
-        self._mutex = threading.Lock()  # another thread may have held it at the fork
+        self._mutex = threading.RLock()  # another thread may have held it at the fork
         held, self._held = self._held, {}
         for fd, _ in held.values():
             with contextlib.suppress(OSError):

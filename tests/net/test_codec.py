@@ -1,6 +1,7 @@
 """The wire format: what a sample's payload, encoding and attachment hold, decodable without this package."""
 
 import json
+import math
 import struct
 
 import numpy as np
@@ -80,8 +81,9 @@ def test_attachment_is_age_sequence_and_source_little_endian():
     assert unpack_attachment(att) == (0.125, 7, 99)
     assert unpack_attachment(None) is None
     assert unpack_attachment(b"short") is None
-    assert unpack_attachment(struct.pack("<dQQ", -1.0, 1, 1)) is None
-    assert unpack_attachment(struct.pack("<dQQ", float("nan"), 1, 1)) is None
+    # the layout only: an implausible age or number is the receiver's to refuse and count (test_sequence.py)
+    assert unpack_attachment(struct.pack("<dQQ", -1.0, 0, 2**64 - 1)) == (-1.0, 0, 2**64 - 1)
+    assert math.isnan(unpack_attachment(struct.pack("<dQQ", float("nan"), 1, 1))[0])
 
 
 def test_errors_name_the_channel_and_share_the_root():

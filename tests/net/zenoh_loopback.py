@@ -75,8 +75,10 @@ class RemotePilotCar:
         self.vehicle = v = Vehicle()
         self.probe = PulseProbe(pca)
         v.add(self.probe, inputs=["pilot/throttle@age"])
-        v.add(RemotePilot(ZenohPublisher(pilot_link, ["pilot/throttle"]), seconds))
-        v.add(ZenohSubscriber(car_link, ["pilot/throttle"]), outputs=["pilot/throttle"])
+        self.pilot = RemotePilot(ZenohPublisher(pilot_link, ["pilot/throttle"]), seconds)
+        v.add(self.pilot)
+        self.commands = ZenohSubscriber(car_link, ["pilot/throttle"])
+        v.add(self.commands, outputs=["pilot/throttle"])
         self.throttle = PWMThrottle("PCA9685.1:40.0", buses=self.buses, arm_s=0, failsafe_age_s=0.25)
         v.add(self.throttle, inputs=["pilot/throttle", "pilot/throttle@age"])
 

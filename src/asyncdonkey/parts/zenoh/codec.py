@@ -28,7 +28,9 @@ the value at the moment it was sent, ``uint64`` sequence number of the sample on
 ``uint64`` source: a random number drawn by each publisher when it starts, so a receiver can tell a restarted
 sender (whose numbering starts over) from late samples.
 The age, not a timestamp, crosses the network because the two machines' clocks are not synchronised; the
-receiver adds the transit it measured (see :mod:`.link`).
+receiver adds the transit it measured (see :mod:`.link`). A receiver refuses a sample whose age is not a finite
+number in [0, 10 s] or whose sequence number is 0, and tracks each sender's numbering so that no sample can
+make the later ones look out of order (:mod:`.sequence`).
 """
 
 from __future__ import annotations
@@ -88,12 +90,13 @@ def pack_attachment(age_s: float, seq: int, source: int = 0) -> bytes:
 
 
 def unpack_attachment(data: bytes | None) -> tuple[float, int, int] | None:
-    """``(age_s, seq, source)`` from an attachment, or ``None`` if it is absent or not ours (a foreign publisher)."""
+    """``(age_s, seq, source)`` from an attachment, or ``None`` if it is absent or not ours (a foreign publisher).
+
+    Only the layout is checked here: whether the age and number are plausible is the receiver's judgement
+    (:mod:`.sequence`), which counts what it refuses."""
     if data is None or len(data) != ATTACHMENT.size:
         return None
     age, seq, source = ATTACHMENT.unpack(data)
-    if not math.isfinite(age) or age < 0:
-        return None
     return age, seq, source
 
 

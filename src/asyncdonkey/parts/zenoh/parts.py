@@ -13,9 +13,16 @@ and on the pilot, ``ZenohPublisher(link, ["pilot/angle", "pilot/throttle"], grou
 **Nothing blocks a tick, nothing queues.** Zenoh calls the subscriber back on its own threads; the callback
 decodes the payload there and swaps it into a one-slot cell per channel under a lock. ``run()`` takes the
 newest value of every channel without waiting. A value that is overwritten before a tick took it is counted
-in ``dropped``; a sample older (by sequence number) than the one already held is discarded and counted in
-``out_of_order``; a sample whose age on arrival exceeds ``late_after_s`` is counted in ``late`` (and still
+in ``dropped``; a sample whose age on arrival exceeds ``late_after_s`` is counted in ``late`` (and still
 used: it is the newest there is); gaps in sequence numbers are counted in ``lost``.
+
+**No sample locks the sender out** (:mod:`.sequence`). A sample whose age is not finite and within
+``[0, max_age_s]`` (10 s), or numbered 0, is refused (``implausible``); a late or repeated one
+(``out_of_order``), the first of a new sender or a restarted one (``unconfirmed``: the next one confirms it),
+and a jump of more than 1000 in numbering (``implausible``, confirmed by the next one) too. Each sender's
+numbering is tracked on its own, and a refused sample moves none of it, so a sample numbered 2**64-1 under
+the pilot's own source costs the pilot nothing, and any burst of foreign samples costs it at most one sample
+once they stop. A refused sample is absent: the channel keeps its last good value, whose age keeps growing.
 
 **One sample per command.** With ``group=`` the publisher sends its channels together as one sample on
 ``<prefix>/<group>`` (:func:`.codec.encode_group`) and the subscriber outputs them together with that sample's
@@ -66,6 +73,7 @@ from ...periodic import Periodic
 from ...ratelimit import LogThrottle
 from .codec import NDARRAY, CodecError, decode, decode_group, encode, encode_group, pack_attachment, unpack_attachment
 from .link import INTERNAL, ZenohLink
+from .sequence import IMPLAUSIBLE, MAX_AGE_S, OUT_OF_ORDER, UNCONFIRMED, SampleOrder
 
 __all__ = ["ZenohPublisher", "ZenohSubscriber", "covering_key"]
 
@@ -280,6 +288,9 @@ class ZenohSubscriber:
         link: the :class:`.ZenohLink` to listen on; the keys are ``<prefix>/<channel>``.
         channels: the channels to take, in the order of the part's outputs.
         late_after_s: an arrival whose age (sender's age plus transit) exceeds this is counted in ``late``.
+        max_age_s: the oldest age a sample may say it has at send time; an older one (or one whose age is not
+            a finite number >= 0) is refused as ``implausible`` (:mod:`.sequence`). Raise it for a slow channel
+            whose values may legitimately be older (a mode chosen minutes ago).
         ping_every_s: how often ``update()`` measures the round trip (``0``: never; ``transit_s`` stays 0).
         key_expr: what to listen to (default: the smallest key expression covering the channels; give
             ``"<prefix>/**"`` to audit every key of the car).
@@ -297,8 +308,10 @@ class ZenohSubscriber:
 
     Counters: ``received`` (samples taken into a cell), ``dropped`` (overwritten before a tick took them, when
     nothing is subscribed to the pushes),
-    ``out_of_order`` (numbered below the newest: discarded), ``late``, ``lost`` (sequence gaps; a refused
-    sample is not lost), ``restarts`` (a sample from a new source, e.g. a restarted pilot: taken),
+    ``out_of_order`` (late or repeated sequence numbers: discarded), ``late``, ``lost`` (sequence gaps, at most
+    999 per sample; a refused sample is not lost), ``restarts`` (new numberings taken: a restarted or new
+    sender, a resync after a jump), ``implausible`` (ages outside ``[0, max_age_s]``, sequence number 0, jumps
+    not yet confirmed), ``unconfirmed`` (the first sample of a new sender, held back until its next one),
     ``unexpected`` (keys not configured, or samples without our attachment), ``refused`` (values not stored,
     per channel and reason, see :attr:`refused`), of which ``malformed`` (payloads that did not decode).
     """
@@ -314,6 +327,7 @@ class ZenohSubscriber:
         on_arrival: Callable[[str], None] | None = None,
         group: str | None = None,
         contracts: Contracts | None = None,
+        max_age_s: float = MAX_AGE_S,
     ) -> None:
         zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
@@ -329,8 +343,10 @@ class ZenohSubscriber:
         self._cells: tuple[str, ...] = (self.group,) if self.group is not None else self.channels
         self._index = {link.key(name): i for i, name in enumerate(self._cells)}
         self._held: list[_Held | None] = [None] * len(self._cells)
-        #: (source, seq) of the newest in-order sample seen per cell, stored or refused: a refusal is no gap
-        self._seen: list[tuple[int, int] | None] = [None] * len(self._cells)
+        #: each cell's senders and their numbering, judged for every numbered sample, stored or refused (a value
+        #: the contracts refuse still used its number: it is no gap)
+        self._orders = [SampleOrder(max_age_s) for _ in self._cells]
+        self.max_age_s = self._orders[0].max_age_s
         self._lock = threading.Lock()
         self._gate_lock = threading.Lock()
         self._log = LogThrottle(5.0)
@@ -347,6 +363,8 @@ class ZenohSubscriber:
         self.unexpected = 0
         self.malformed = 0
         self.restarts = 0
+        self.implausible = 0
+        self.unconfirmed = 0
         self.on_arrival = on_arrival
         self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
@@ -398,7 +416,7 @@ class ZenohSubscriber:
         if meta is None and not delete:
             self._reject(key, "carries no age attachment (not an asyncdonkey publisher)")
             return
-        if meta is not None and not self._in_order(i, meta[1], meta[2]):
+        if meta is not None and not self._in_order(i, *meta):
             return
         now = self.link.now()
         if delete:  # the absence of a value, whoever sends it
@@ -408,21 +426,33 @@ class ZenohSubscriber:
         if value is not REFUSED and meta is not None:
             self._store(i, value, meta, now)
 
-    def _in_order(self, i: int, seq: int, source: int) -> bool:
-        """Sequence bookkeeping for every numbered sample, stored or refused: ``False`` for an old one."""
+    def _in_order(self, i: int, age: float, seq: int, source: int) -> bool:
+        """Age and sequence sanity for every numbered sample (:mod:`.sequence`): ``False`` for one not to take
+        (counted; an implausible one logged, rate-limited)."""
         with self._lock:
-            seen = self._seen[i]
-            if seen is not None:
-                last_source, last_seq = seen
-                if source != last_source:
-                    self.restarts += 1  # another sender, or the same one restarted: its numbering starts over
-                elif seq <= last_seq:
-                    self.out_of_order += 1
-                    return False
-                elif seq > last_seq + 1:
-                    self.lost += seq - last_seq - 1
-            self._seen[i] = (source, seq)
-        return True
+            verdict = self._orders[i].check(age, seq, source)
+            self.lost += verdict.lost
+            self.restarts += verdict.restart
+            if verdict.reason == OUT_OF_ORDER:
+                self.out_of_order += 1
+            elif verdict.reason == UNCONFIRMED:
+                self.unconfirmed += 1
+            elif verdict.reason == IMPLAUSIBLE:
+                self.implausible += 1
+            n = self.implausible
+        if verdict.reason == IMPLAUSIBLE:
+            key = self.link.key(self._cells[i])
+            more = self._log.ready(("implausible", i), self.link.now())
+            if more is not None:
+                logger.warning(
+                    "ZenohSubscriber on %r: refused a sample on %r: %s (%d implausible so far)%s",
+                    self.link.prefix,
+                    key,
+                    verdict.detail,
+                    n,
+                    more,
+                )
+        return verdict.taken
 
     def _value(self, i: int, sample: Any, now: float) -> Any:
         """The sample's value as it may be stored (a group: the tuple of its values), or :data:`REFUSED`."""
@@ -569,6 +599,8 @@ class ZenohSubscriber:
                 "refused": refused,
                 "malformed": malformed,
                 "restarts": self.restarts,
+                "implausible": self.implausible,
+                "unconfirmed": self.unconfirmed,
             }
 
     def shutdown(self) -> None:

@@ -17,7 +17,13 @@ from hypothesis import strategies as st
 from asyncdonkey import Vehicle
 from asyncdonkey.clock import get_clock
 from asyncdonkey.hw.pinspec import PinSpecError
-from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle, donkeycar_map_range, pulse_to_ticks
+from asyncdonkey.parts.actuators import (
+    CalibrationLocked,
+    PWMSteering,
+    PWMThrottle,
+    donkeycar_map_range,
+    pulse_to_ticks,
+)
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 STEERING_TABLE = [(-1, 460), (-0.5, 417), (0, 375), (0.5, 332), (1, 290)]
@@ -449,3 +455,51 @@ def test_calibration_changes_live_and_is_checked_like_the_constructor(rig):
     with pytest.raises(ValueError, match=r"THROTTLE_STOPPED_PWM"):
         t.calibrate(max_pulse=380)
     assert t.max_pulse == 500
+
+
+def test_a_zero_throttle_is_exactly_the_stopped_pulse_where_donkeycars_float_map_lands_one_below(rig):
+    """A reversed ESC (forward 200, stopped 300, reverse 692): Donkeycar's floored map sends 299 for "stopped"."""
+    assert donkeycar_map_range(0, -1, 0, 692, 300) == 299
+    t = rig.throttle(max_pulse=200, zero_pulse=300, min_pulse=692)
+    assert t.map_throttle(0.0) == t.map_throttle(-0.0) == t.map_throttle(None) == t.map_throttle(math.nan) == 300
+    for x in (-1.0, -0.5, -1e-9, 1e-9, 0.5, 1.0):  # the rest of the map stays Donkeycar's
+        span = (-1, 0, 692, 300) if x < 0 else (0, 1, 300, 200)
+        assert t.map_throttle(x) == donkeycar_map_range(x, *span)
+
+
+def test_the_stopped_pulse_is_locked_from_the_drives_start_to_its_end(rig):
+    t, s = rig.throttle(), rig.steering()
+
+    class Runtime:
+        guard_last = None
+
+    t.calibrate(zero_pulse=380)  # before a drive: the stopped pulse moves, and the safe one with it
+    assert (t.safe_pulse, t.map_throttle(0)) == (380, 380)
+    t.attach(Runtime()), s.attach(Runtime())
+    for change in (lambda: t.calibrate(zero_pulse=370), lambda: setattr(t, "zero_pulse", 390)):
+        with pytest.raises(CalibrationLocked, match=r"PWMThrottle \(channel 0 .*\): THROTTLE_STOPPED_PWM stays 380"):
+            change()
+    assert (t.zero_pulse, t.safe_pulse, t.map_throttle(0)) == (380, 380, 380)
+    assert t.calibrate(zero_pulse=380, max_pulse=510) == {"max_pulse": 510, "zero_pulse": 380, "min_pulse": 220}
+    s.calibrate(left_pulse=480)  # the steering end points move the centre a zero angle maps to, not the safe one
+    assert (s.neutral_pulse, s.safe_pulse) == (385, 375)
+    t.attach(None), s.attach(None)
+    assert s.safe_pulse == 385
+    t.zero_pulse = 370
+    assert (t.safe_pulse, t.map_throttle(0)) == (370, 370)
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_writer_run_without_a_drive_locks_the_stopped_pulse_it_armed_with(rig):
+    t = rig.throttle(arm_s=0.1)
+    writer = asyncio.create_task(t.update())
+    await asyncio.sleep(0.2)
+    assert t.armed and rig.pca.pulse(0) == 370
+    with pytest.raises(CalibrationLocked):
+        t.calibrate(zero_pulse=400)
+    await t.shutdown()
+    await writer
+    assert rig.pca.pulse(0) == 370 and not t.safe_pulse_fixed
+    t.calibrate(zero_pulse=400)
+    assert t.safe_pulse == 400

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from asyncdonkey import Contract, Contracts, Vehicle
-from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle, pulse_to_ticks
+from asyncdonkey.parts.actuators import (
+    CalibrationLocked,
+    PWMSteering,
+    PWMThrottle,
+    pulse_to_ticks,
+)
 from asyncdonkey.parts.control import DRIVE_MODES
 from asyncdonkey.parts.web import WebConfigError, WebController
 from asyncdonkey.parts.web.calibrate import (
@@ -184,6 +189,8 @@ def test_the_car_is_stopped_only_with_a_zero_command_and_the_output_at_a_stopped
     throttle.pulse, throttle.written_pulse = 370, None  # nothing written yet (or the write failed)
     assert why_not_stopped(0.0, "user", throttle) is not None
     assert "pilot" in why_not_stopped(0.0, "local", None)  # no output to look at: the mode must be user
+    throttle.pulse = throttle.written_pulse = 370
+    assert "pilot" in why_not_stopped(0.0, "local", throttle)  # stopped now, but a pilot may drive at the next tick
     assert why_not_stopped(0.0, "user", None) is None
 
 
@@ -228,29 +235,45 @@ class _Drive:
         pass
 
 
-def test_a_calibration_during_a_drive_never_moves_the_safe_pulse():
+class _Route:
+    """A PCA9685 channel's route as the safety process is given it at the drive's start (the pulse, in ticks)."""
+
+    def safety_route(self, ticks: int) -> dict:
+        return {"ticks": ticks}
+
+
+def test_the_safe_pulses_are_fixed_at_the_drives_start_and_shared_by_every_safe_path():
     sim = I2CSimulator()
     pca = sim.attach(PCA9685Model(), address=0x40, bus=1)
     buses = sim.registry(retry_delay_s=0)
     steering, throttle = PWMSteering("PCA9685.1:40.1", buses=buses), PWMThrottle("PCA9685.1:40.0", buses=buses)
+    throttle._channel = steering._channel = _Route()
     try:
-        steering.attach(_Drive()), throttle.attach(_Drive())  # the drive starts at 370 stopped, 375 centred
-        apply_calibration(steering, throttle, {"THROTTLE_STOPPED_PWM": 380, "STEERING_LEFT_PWM": 480})
-        assert (throttle.neutral_pulse, throttle.map_throttle(0.0)) == (380, 380)  # what a zero command is now
-        assert (throttle.safe_pulse, steering.safe_pulse) == (370, 375)  # what "safe" is: the drive's
+        # the drive starts: the safety process is given its routes first, then the parts are attached
+        assert throttle.safety_route() == {"ticks": pulse_to_ticks(370)}
+        assert steering.safety_route() == {"ticks": pulse_to_ticks(375)}
+        with pytest.raises(CalibrationLocked, match="stays 370 during a drive"):
+            throttle.calibrate(zero_pulse=380)  # fixed from the route on, before the parts are attached
+        steering.attach(_Drive()), throttle.attach(_Drive())
+        with pytest.raises(CalibrationError, match="stays 370 during a drive") as err:
+            apply_calibration(steering, throttle, {"THROTTLE_STOPPED_PWM": 380, "STEERING_LEFT_PWM": 480})
+        assert (err.value.channel, err.value.reason) == ("calibration/THROTTLE_STOPPED_PWM", "armed")
+        assert steering.left_pulse == 460  # refused whole: the steering half is not set either
+        with pytest.raises(CalibrationLocked):
+            throttle.zero_pulse = 380  # Donkeycar's attribute is the same calibration, refused the same way
+        # the end points may change, and the stopped pulse may be "set" to what it is (the page sends all five)
+        got = {"STEERING_LEFT_PWM": 480, "THROTTLE_REVERSE_PWM": 277, "THROTTLE_STOPPED_PWM": 370}
+        assert apply_calibration(steering, throttle, got)["THROTTLE_REVERSE_PWM"] == 277
+        assert throttle.map_throttle(0.0) == throttle.map_throttle(-0.0) == throttle.map_throttle(None) == 370
+        assert steering.neutral_pulse == 385 and steering.safe_pulse == 375  # a zero angle maps to the new centre
         throttle.safe_state_sync()  # the watchdog's write
         steering.safe_state_sync()
         assert (pca.pulse(0), pca.pulse(1)) == (370, 375)
-
-        class Channel:  # what the safety process is given at the drive's start (the model has no route of its own)
-            def safety_route(self, ticks: int) -> dict:
-                return {"ticks": ticks}
-
-        throttle._channel = Channel()
-        assert throttle.safety_route() == {"ticks": pulse_to_ticks(370)}
+        assert steering.safety_route() == {"ticks": pulse_to_ticks(375)}  # asked again: still the drive's
         throttle.attach(None), steering.attach(None)  # the drive ends; the next one starts from the calibration
-        throttle.attach(_Drive())
-        assert throttle.safe_pulse == 380
+        assert not throttle.safe_pulse_fixed and steering.safe_pulse == 385
+        throttle.calibrate(zero_pulse=380)  # between drives the stopped pulse may move, and "safe" with it
+        assert throttle.safe_pulse == 380 == throttle.map_throttle(0.0)
     finally:
         buses.close_all()
 

@@ -286,9 +286,14 @@ async def test_calibration_is_refused_to_a_client_that_does_not_drive(tmp_path):
         assert car.ctr.refused_values["web/calibration"]["not_driver"] == 1
         await driver.send_json({"release": True})
         await until_control(driver, "free")
-        await cal.send_json({"config": {"THROTTLE_STOPPED_PWM": 380}})  # nobody drives: it takes control
-        assert (await next_json(cal, "config"))["config"]["THROTTLE_STOPPED_PWM"] == 380
+        await cal.send_json({"config": {"STEERING_LEFT_PWM": 480}})  # nobody drives, but the driver's page is open
+        assert "take control first" in (await next_json(cal, "error"))["error"]
+        await cal.send_json({"angle": 0.0, "throttle": 0.0})  # the page's Centre and stop: it takes control
+        assert (await next_json(cal, "control"))["control"] == "you"
+        await cal.send_json({"config": {"STEERING_LEFT_PWM": 480}})
+        assert (await next_json(cal, "config"))["config"]["STEERING_LEFT_PWM"] == 480 == car.steering.left_pulse
         await until_control(driver, "other")
+        assert car.ctr.refused_values["web/calibration"]["not_driver"] == 2
 
 
 @pytest.mark.asyncio
@@ -350,31 +355,10 @@ async def test_a_bad_stopped_pulse_is_refused_and_the_answer_is_what_is_in_force
             "fraction": 1,
         }
         assert counts["web/calibration"]["calibration"] == 2  # 500 and 220: equal to an end point
-        await cal.send_json({"config": {"THROTTLE_STOPPED_PWM": 372}})
-        config = (await next_json(cal, "config"))["config"]
-        assert config["THROTTLE_STOPPED_PWM"] == 372 == car.throttle.zero_pulse == car.throttle.neutral_pulse
-
-
-@pytest.mark.asyncio
-async def test_after_a_calibration_the_failsafe_stops_at_the_pulse_the_drive_started_with(tmp_path):
-    car = WebCar(tmp_path, idle_release_s=30.0)
-    async with (
-        driving(car),
-        aiohttp.ClientSession(headers=auth(car)) as http,
-        http.ws_connect(car.base + "/wsCalibrate") as cal,
-    ):
-        await cal.receive_json()
-        await cal.send_json({"config": {"THROTTLE_STOPPED_PWM": 380}})
-        assert (await next_json(cal, "config"))["config"]["THROTTLE_STOPPED_PWM"] == 380
-        await cal.send_json({"throttle": 0.0})
-        await await_until(lambda: car.throttle_pulse() == 380, what="a zero command at the new stopped pulse")
-        assert car.throttle.safe_pulse == ZERO_PULSE  # "safe" is still the drive's
-        events = car.throttle.failsafe_events
-        await cal.send_json({"throttle": 0.4})
-        await await_until(lambda: car.throttle_pulse() > 380, what="driving")
-        # the page goes quiet: the failsafe (and the watchdog thread) write the drive's stopped pulse
-        await await_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "the failsafe's pulse, 370")
-        await await_until(lambda: car.throttle.failsafe_events > events, 1, "the failsafe event")
-        await asyncio.sleep(0.1)
-        assert car.throttle_pulse() == ZERO_PULSE  # and it stays there: 380 is not "safe" during this drive
-    assert car.throttle_pulse() == ZERO_PULSE  # nor at shutdown
+        await cal.send_json({"config": {"THROTTLE_STOPPED_PWM": 372}})  # valid, but not the pulse the ESC armed with
+        assert "stays 370 during a drive" in (await next_json(cal, "error"))["error"]
+        assert car.ctr.refused_values["calibration/THROTTLE_STOPPED_PWM"]["armed"] == 1
+        await cal.send_json({"config": {"THROTTLE_STOPPED_PWM": 370, "THROTTLE_FORWARD_PWM": 480}})
+        config = (await next_json(cal, "config"))["config"]  # the page sends all five: "stopped" as it is is fine
+        assert config["THROTTLE_FORWARD_PWM"] == 480 == car.throttle.max_pulse
+        assert (car.throttle.zero_pulse, car.throttle.neutral_pulse, car.throttle.safe_pulse) == (370, 370, 370)

@@ -27,8 +27,14 @@ What is different, and why:
   "throttle@age"]``, the Vehicle supplies ``@age``): a command ``failsafe_age_s`` old (default 0.25 s) or
   older is replaced by the stopped pulse. The writer task checks too, on its own timer, so the car stops even
   when the tick itself stalls. Each entry into the failsafe is counted (``failsafe_events``) and logged
-  (rate-limited). Every safe-state write (failsafe, watchdog, safety process, shutdown) uses ``safe_pulse``,
-  the neutral pulse as the drive started: a live ``calibrate()`` moves the neutral pulse, not the safe one.
+  (rate-limited).
+* **One safe pulse per drive.** Every write that puts the car safe (a zero command, the failsafe, the
+  watchdog, the safety process, arming, shutdown) uses ``safe_pulse``: the stopped pulse (steering: the centre)
+  fixed when the drive starts, the one the ESC was armed with. During a drive ``calibrate()`` refuses to move
+  the throttle's stopped pulse (:class:`CalibrationLocked`); the end points may change (a steering calibration
+  moves the centre a zero *command* maps to, never the safe pulse). Between drives the safe pulse follows the
+  calibration. A zero throttle command is exactly the safe pulse: Donkeycar's floored float map lands one below
+  the stopped pulse for some calibrations (reverse 277, stopped 370 maps 0 to 369).
 * **One chip driver per (bus, address)**: opening the throttle pin does not re-initialise the chip the
   steering pin already set up (Donkeycar's does, zeroing the steering channel).
 
@@ -56,9 +62,14 @@ from ..hw.pinspec import PCA9685Pin
 from ..ratelimit import LogThrottle
 from ..safety.unsafe import UnsafeTime
 
-__all__ = ["PWMSteering", "PWMThrottle", "donkeycar_map_range", "pulse_to_ticks"]
+__all__ = ["CalibrationLocked", "PWMSteering", "PWMThrottle", "donkeycar_map_range", "pulse_to_ticks"]
 
 logger = logging.getLogger(__name__)
+
+
+class CalibrationLocked(ValueError):
+    """A calibration refused because it would change what "stopped" is during a drive (the message says which
+    pulse, the drive's and the one asked)."""
 
 
 def donkeycar_map_range(x: float, x_min: float, x_max: float, y_min: float, y_max: float) -> int:
@@ -185,11 +196,12 @@ class _PWMPart:
         self._pending_origin: float | None = None
         self.name = f"{kind} ({where})"
         self.neutral_pulse = int(neutral_pulse)
-        #: the pulse every safe-state write uses (the failsafe, the watchdog, arming, shutdown; the safety
-        #: process's route is taken at the drive's start too): the neutral pulse as the drive started. A live
-        #: calibration changes :attr:`neutral_pulse` (what a zero command maps to) but never what is "safe"
-        #: during a drive: a value typed into a web page must not redefine the stop the failsafe falls back to.
+        #: the pulse every safe-state write uses (the failsafe, the watchdog, the safety process's route, arming,
+        #: shutdown; the throttle's zero command too): the neutral pulse as the drive started. Fixed from the
+        #: drive's start (:meth:`safety_route`, :meth:`attach`, or a writer started on its own) to its end: a
+        #: value typed into a web page must not redefine the stop every safe path falls back to.
         self.safe_pulse = self.neutral_pulse
+        self._safe_fixed = False
         self.retry_s = float(retry_s)
         self.pulse = self.neutral_pulse  # the newest target, in Donkeycar pulse units
         self.written_pulse: int | None = None  # what the chip was last told
@@ -256,16 +268,34 @@ class _PWMPart:
         """How the safety process puts this output in its safe state by itself (``None``: it cannot).
 
         Only a PCA9685 channel has one: a Donkeycar controller object or an async-only output lives in this
-        process alone. The pulse is the safe one as it is now, at the drive's start."""
+        process alone. The drive asks for it first thing, so this fixes the drive's safe pulse: the safety process
+        and every path in this process write the same one."""
+        self._fix_safe_pulse()
         ch = self._channel
         if ch is None:
             return None
         return ch.safety_route(pulse_to_ticks(self.safe_pulse, self._scale, self._inverted))
 
+    @property
+    def safe_pulse_fixed(self) -> bool:
+        """True from a drive's start to its end: :attr:`safe_pulse` cannot change meanwhile."""
+        return self._safe_fixed
+
+    def _fix_safe_pulse(self) -> None:
+        """The drive starts: the safe pulse is the neutral pulse in force now, until :meth:`_release_safe_pulse`."""
+        if not self._safe_fixed:
+            self.safe_pulse = self.neutral_pulse
+            self._safe_fixed = True
+
+    def _release_safe_pulse(self) -> None:
+        """The drive ended: the calibration in force is the next drive's safe pulse."""
+        self._safe_fixed = False
+        self.safe_pulse = self.neutral_pulse
+
     def _calibrated(self) -> None:
         """A calibration changed :attr:`neutral_pulse`: between drives it is the safe pulse from now on; during
         one the safe pulse stays the drive's (see :attr:`safe_pulse`)."""
-        if self._runtime is None:
+        if not self._safe_fixed:
             self.safe_pulse = self.neutral_pulse
 
     def output_overridden(self) -> None:
@@ -281,12 +311,14 @@ class _PWMPart:
 
     def attach(self, runtime: Any) -> None:
         """Called by the drive at its start (its latency recorder and watchdog) and with ``None`` at its end."""
-        if runtime is None and self._runtime is not None:
-            with self._wlock:  # the drive ends: an event still open ends with it
-                if self._now is not None:
-                    self.unsafe.closed(self._now())
-        elif runtime is not None:
-            self.safe_pulse = self.neutral_pulse  # the drive's safe pulse, whatever is calibrated during it
+        if runtime is None:
+            if self._runtime is not None:
+                with self._wlock:  # the drive ends: an event still open ends with it
+                    if self._now is not None:
+                        self.unsafe.closed(self._now())
+            self._release_safe_pulse()
+        else:
+            self._fix_safe_pulse()  # the drive's safe pulse (already, if the safety process asked for its route)
             self.unsafe = UnsafeTime()
             self.unsafe.guard_last = getattr(runtime, "guard_last", None)
         self._runtime = runtime
@@ -343,6 +375,7 @@ class _PWMPart:
         clock = get_clock(loop)
         self._now = clock.now
         self._running = True
+        self._fix_safe_pulse()  # a writer started without a drive (a script, a test) arms the ESC with it too
         waiter = DeadlineWaiter(loop)  # one OS timer for every wait of this writer
         try:
             await self._before_driving(clock, waiter)
@@ -365,6 +398,8 @@ class _PWMPart:
             self._running = False
             self._wake = None
             self._writer_deadline = math.inf
+            if self._runtime is None:  # no drive to end it: the writer's run was the drive
+                self._release_safe_pulse()
 
     async def shutdown(self) -> None:
         """Stop the writer and leave the output at the safe pulse (steering centre, throttle stopped)."""
@@ -529,7 +564,7 @@ class PWMThrottle(_PWMPart):
             raise ValueError(f"PWMThrottle: arm_s must be a number >= 0, got {arm_s!r}")
         self.max_pulse = max_pulse
         self.min_pulse = min_pulse
-        self.zero_pulse = zero_pulse
+        self._zero_pulse = zero_pulse
         self.failsafe_age_s = failsafe_age_s
         self.arm_s = float(arm_s)
         super().__init__(
@@ -583,33 +618,52 @@ class PWMThrottle(_PWMPart):
     ) -> dict[str, int]:
         """Change the calibration live (``THROTTLE_FORWARD_PWM``, ``THROTTLE_STOPPED_PWM``,
         ``THROTTLE_REVERSE_PWM``); ``None`` keeps a value. Checked as the constructor checks it; with
-        ``check_only`` nothing changes. The stopped pulse becomes the neutral (failsafe and shutdown) pulse."""
+        ``check_only`` nothing changes.
+
+        Between drives the stopped pulse becomes the safe pulse (failsafe, shutdown, the next drive's arming).
+        During a drive it is the pulse the ESC was armed with, so changing it raises :class:`CalibrationLocked`
+        (after the constructor's checks): the end points may change, "stopped" may not. Set
+        ``THROTTLE_STOPPED_PWM`` in the car's settings and start the drive again to re-arm at a new one."""
         vals = {
             "max_pulse": self.max_pulse if max_pulse is None else max_pulse,
             "zero_pulse": self.zero_pulse if zero_pulse is None else zero_pulse,
             "min_pulse": self.min_pulse if min_pulse is None else min_pulse,
         }
         self._check_calibration(vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"])
+        if self._safe_fixed and vals["zero_pulse"] != self.safe_pulse:
+            raise CalibrationLocked(
+                f"{self.name}: THROTTLE_STOPPED_PWM stays {self.safe_pulse} during a drive (the ESC was armed with "
+                f"it), not {vals['zero_pulse']}; set it in the car's settings and start the drive again"
+            )
         if not check_only:
-            self.max_pulse, self.zero_pulse, self.min_pulse = vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"]
-            self.neutral_pulse = int(self.zero_pulse)
+            self.max_pulse, self._zero_pulse, self.min_pulse = vals["max_pulse"], vals["zero_pulse"], vals["min_pulse"]
+            self.neutral_pulse = int(self._zero_pulse)
             self._calibrated()
         return {k: int(v) for k, v in vals.items()}
 
+    @property
+    def zero_pulse(self) -> Any:
+        """``THROTTLE_STOPPED_PWM``. Setting it is :meth:`calibrate` (checked, and refused during a drive)."""
+        return self._zero_pulse
+
+    @zero_pulse.setter
+    def zero_pulse(self, value: Any) -> None:
+        self.calibrate(zero_pulse=value)
+
     def map_throttle(self, throttle: float | None) -> int:
-        """Donkeycar's throttle mapping (clamped; ``None``/NaN → stopped)."""
+        """Donkeycar's throttle mapping (clamped); ``None``, NaN and 0 are exactly the safe (stopped) pulse."""
         if throttle is None:
-            return self.neutral_pulse
+            return self.safe_pulse
         try:
             t = float(throttle)
         except (TypeError, ValueError):
             raise TypeError(f"{self.name}: throttle must be a number or None, got {throttle!r}") from None
-        if t != t:
-            return self.neutral_pulse
+        if t != t or t == 0.0:
+            return self.safe_pulse
         t = -1.0 if t < -1.0 else 1.0 if t > 1.0 else t
         if t > 0:
-            return donkeycar_map_range(t, 0, 1, self.zero_pulse, self.max_pulse)
-        return donkeycar_map_range(t, -1, 0, self.min_pulse, self.zero_pulse)
+            return donkeycar_map_range(t, 0, 1, self._zero_pulse, self.max_pulse)
+        return donkeycar_map_range(t, -1, 0, self.min_pulse, self._zero_pulse)
 
     def run(self, throttle: float | None, throttle_age: float | None = None) -> None:
         """Set the throttle target; ``throttle_age`` (from a ``"...@age"`` input: the age of the sensing behind

@@ -11,13 +11,16 @@ A calibration changes what the car does with every command, so it is guarded as 
   PCA9685's 0..4095; ``NaN``, ``inf``, a 400-digit integer, ``"480"`` are refused and counted);
 * the calibration that would result is checked before anything is set (left ≠ right, and the stopped pulse
   strictly between the reverse and forward pulses: a "stopped" pulse past forward is full throttle);
-* only while the car is stopped (:func:`why_not_stopped`) and only for the client holding control (the
-  controller checks that);
+* the stopped pulse never changes during a drive: it is the one the ESC was armed with and the one every safe
+  path writes (the throttle's ``safe_pulse``; the part itself refuses, :class:`~..actuators.CalibrationLocked`,
+  counted here as ``armed``). The end points and the steering pulses may change;
+* only while the car is disarmed (:func:`why_not_stopped`) and only by the driver (the controller asks its
+  desk, :meth:`~.desk.Desk.why_not_calibrator`), every request logged with who made it;
 * read back: the calibration in force afterwards must be what was asked (:func:`apply_calibration`).
 
-The neutral pulses follow (steering centre, throttle stopped: what a zero command maps to), but what the car
-falls back to in the failsafe, the watchdog and the safety process stays the pulse the drive started with
-(the actuators' ``safe_pulse``): a value typed into a page never redefines "safe" during a drive.
+The steering centre a zero command maps to follows a steering calibration, but what the car falls back to
+(shutdown, the watchdog, the safety process) stays the centre the drive started with: a value typed into a
+page never redefines "safe" during a drive.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ import math
 from typing import Any
 
 from ...contracts import Contract
+from ..actuators import CalibrationLocked
+from ..control import USER
 from .auth import WebConfigError
 from .intake import Intake
 
@@ -114,17 +119,19 @@ def _pulse(intake: Intake, key: str, value: object) -> int:
 
 
 def why_not_stopped(command: float, mode: str, throttle: Any) -> str | None:
-    """Why the car is not stopped (``None``: it is): the controller's throttle command is not 0, or the
-    throttle's output is not at a stopped pulse (the one in force or the drive's safe one), or, without a
-    throttle part to look at, a pilot may be driving."""
+    """Why the car is not disarmed (``None``: it is). Disarmed is all of: the controller's throttle command is 0;
+    the throttle's target and its last write are both its safe pulse (the stopped pulse the drive armed the ESC
+    with: nothing else drives it, a write that failed or is still on its way counts as moving); and the drive
+    mode is ``user``, so no pilot can take the throttle at the next tick."""
     if command != 0.0:
         return f"the throttle command is {command:+.2f}"
-    if throttle is None:
-        return None if mode == "user" else f"a pilot may be driving (mode {mode!r})"
-    stopped = {int(throttle.neutral_pulse), int(getattr(throttle, "safe_pulse", throttle.neutral_pulse))}
-    out = getattr(throttle, "written_pulse", None)
-    if out not in stopped or getattr(throttle, "pulse", out) not in stopped:
-        return f"the throttle's output is at pulse {out}, not at the stopped pulse {throttle.neutral_pulse}"
+    if throttle is not None:
+        stopped = int(getattr(throttle, "safe_pulse", throttle.neutral_pulse))
+        out = getattr(throttle, "written_pulse", None)
+        if out != stopped or getattr(throttle, "pulse", out) != stopped:
+            return f"the throttle's output is at pulse {out}, not at the stopped pulse {stopped}"
+    if mode != USER:
+        return f"a pilot may be driving (mode {mode!r})"
     return None
 
 
@@ -160,15 +167,21 @@ def apply_calibration(steering: Any, throttle: Any, config: object) -> dict[str,
             which = "steering" if key in STEERING_KEYS else "throttle"
             raise CalibrationError(f"calibration: {key} needs the {which} part (WebController({which}=...))")
         target[known[key]] = _whole_pulse(key, value)
+    locked: CalibrationLocked | None = None
     try:  # both parts checked before either changes
         if steer_new:
             steering.calibrate(**steer_new, check_only=True)
         if throttle_new:
-            throttle.calibrate(**throttle_new, check_only=True)
+            try:
+                throttle.calibrate(**throttle_new, check_only=True)
+            except CalibrationLocked as exc:
+                locked = exc  # said after the value checks: a stopped pulse past forward is told so first
     except ValueError as exc:
         raise CalibrationError(f"calibration: {exc}") from None
     if throttle_new:
         _check_stopped_between(throttle, throttle_new)
+    if locked is not None:
+        raise CalibrationError(f"calibration: {locked}", channel="calibration/THROTTLE_STOPPED_PWM", reason="armed")
     if steer_new:
         steering.calibrate(**steer_new)
     if throttle_new:

@@ -40,6 +40,7 @@ import math
 import ssl
 import sys
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from importlib import resources
 from typing import Any, Final, TextIO
@@ -215,6 +216,10 @@ class WebController:
         self._buttons: dict[str, bool] = {}
 
         self.desk = Desk(idle_release_s)
+        #: the latest calibration requests, accepted or refused: when, who, what was asked, what changed, why not
+        self.calibrations: deque[dict[str, Any]] = deque(maxlen=100)
+        self._who: dict[object, str] = {}  # a page -> how the logs name it (its address)
+        self._calibration_log = LogThrottle(1.0)
         self.hub = FrameHub(jpeg_quality)
         self.commands = 0  # drive commands applied
         self.bad_commands = 0  # messages refused (a bad value, not JSON, too large, ...)
@@ -383,7 +388,7 @@ class WebController:
             self.throttle = 0.0
             self._mode_latch = USER  # the pilot loses the car too
             self._origin = now
-            logger.warning("web: stop from %s", _name(client))
+            logger.warning("web: stop from %s", self._describe(client))
         if cmd.release and client is not None and self.desk.release(client):
             self._on_release("released")
         if cmd.drives:
@@ -517,6 +522,7 @@ class WebController:
         _check_origin(request)
         ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=_WS_FRAME_LIMIT)
         await ws.prepare(request)
+        self._page_opened(ws, request)
         role = self.desk.role(ws, self._now())
         self._clients[ws] = role
         hello: dict[str, Any] = {
@@ -534,7 +540,7 @@ class WebController:
                 self._on_message(ws, msg)
         finally:
             self._clients.pop(ws, None)
-            if self.desk.release(ws):
+            if self._page_closed(ws):
                 self._on_release("closed the page")
         return ws
 
@@ -565,15 +571,30 @@ class WebController:
         _check_origin(request)
         ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=_WS_FRAME_LIMIT)
         await ws.prepare(request)
-        await ws.send_json({"config": current_calibration(self.steering, self.throttle_part)})
+        self._page_opened(ws, request)
         try:
+            await ws.send_json({"config": current_calibration(self.steering, self.throttle_part)})
             async for msg in ws:
                 for payload in self._on_calibrate_message(ws, msg):
                     await _send_json(ws, payload)
         finally:
-            if self.desk.release(ws):
+            if self._page_closed(ws):
                 self._on_release("closed the calibration page")
         return ws
+
+    def _page_opened(self, ws: web.WebSocketResponse, request: web.Request) -> None:
+        """A page connected: the desk counts it (a lone page may calibrate), the logs name it by its address."""
+        self.desk.opened(ws)
+        self._who[ws] = f"page {id(ws):x} from {request.remote or 'an unknown address'}"
+
+    def _page_closed(self, ws: web.WebSocketResponse) -> bool:
+        """A page closed; true when it held control (now free)."""
+        self._who.pop(ws, None)
+        return self.desk.closed(ws)
+
+    def _describe(self, client: object) -> str:
+        """How the logs name a client: a page by its address, a ``POST`` script by its session."""
+        return self._who.get(client) or _name(client)
 
     def _on_calibrate_message(self, ws: web.WebSocketResponse, msg: Any) -> list[dict[str, Any]]:
         """One message from the calibration page (``config``, then test ``angle``/``throttle``); the answers."""
@@ -583,7 +604,7 @@ class WebController:
             cmd = self.intake.command(drive) if drive else None  # admitted first: the message is taken whole
             out: list[dict[str, Any]] = []
             if "config" in data:
-                out.append(self._calibrate(ws, data["config"]))
+                out.append({"config": self.calibrate(ws, data["config"])})
             if cmd is not None:
                 out.append({"control": self.apply(ws, cmd)})
             return out
@@ -597,27 +618,51 @@ class WebController:
             self._internal_error(ws, exc)
             return []
 
-    def _calibrate(self, client: object, config: object) -> dict[str, Any]:
-        """Set a calibration for the client holding control (a calibration message takes control when nobody
-        holds it, as a drive command does) while the car is stopped; the answer is the calibration in force."""
-        pulses = admit_config(self.intake, config)
-        before = self.desk.driver
+    def calibrate(self, client: object, config: object) -> dict[str, int]:
+        """Set a calibration (``{"STEERING_LEFT_PWM": 480, ...}``) for ``client``; returns the calibration in force.
+
+        Only the driver (:meth:`~.desk.Desk.why_not_calibrator`; a lone page takes control with it), only while
+        the car is disarmed (:func:`~.calibrate.why_not_stopped`), never moving the stopped pulse the drive armed
+        the ESC with (the throttle refuses it). Every request, accepted or refused, is logged with who made it
+        and what it asked or changed, and kept in :attr:`calibrations`. Raises :class:`CalibrationError` (its
+        text is what the client is told), counted at the web gate."""
+        now = self._now()
+        who = self._describe(client)
         try:
-            if not self.desk.claim(client, self._now()):
-                raise CalibrationError(
-                    "calibration: another client is driving; only the driver can calibrate", reason="not_driver"
-                )
-            if self.desk.driver is not before:
-                self._push_roles()
+            pulses = admit_config(self.intake, config)  # each refused value is counted by the gate as it goes
+        except CalibrationError as exc:
+            self._calibration_refused(now, who, config, exc)
+            raise
+        try:
+            refusal = self.desk.why_not_calibrator(client, now)
+            if refusal is not None:
+                raise CalibrationError(f"calibration: {refusal}", reason="not_driver")
             moving = why_not_stopped(self.throttle, self.mode, self.throttle_part)
             if moving is not None:
                 raise CalibrationError(f"calibration: the car must be stopped to calibrate: {moving}", reason="moving")
+            before = current_calibration(self.steering, self.throttle_part)
             applied = apply_calibration(self.steering, self.throttle_part, pulses)
         except CalibrationError as exc:
-            self.gate.refuse(exc.channel, exc.reason, str(exc), self._now())
+            self.gate.refuse(exc.channel, exc.reason, str(exc), now)
+            self._calibration_refused(now, who, pulses, exc)
             raise
-        logger.info("web: calibration set to %s by %s", applied, _name(client))
-        return {"config": applied}
+        driver = self.desk.driver
+        self.desk.claim(client, now)  # the calibrator holds control: a watcher's drive commands are "other"
+        if self.desk.driver is not driver:
+            self._push_roles()
+        changed = {k: [before[k], v] for k, v in applied.items() if before.get(k) != v}
+        self.calibrations.append({"t": now, "who": who, "asked": pulses, "changed": changed, "refused": None})
+        said = ", ".join(f"{k} {a} -> {b}" for k, (a, b) in changed.items()) or "nothing changed"
+        logger.info("web: calibration by %s: %s", who, said)
+        return applied
+
+    def _calibration_refused(self, now: float, who: str, asked: object, exc: CalibrationError) -> None:
+        """Keep and log a refused calibration with who asked (the log rate-limited per client: one a second)."""
+        record = asked if isinstance(asked, dict) else repr(asked)[:80]
+        self.calibrations.append({"t": now, "who": who, "asked": record, "changed": {}, "refused": str(exc)})
+        more = self._calibration_log.ready(who, now, "refusals")
+        if more is not None:
+            logger.warning("web: calibration refused for %s (asked %.200s): %s%s", who, record, exc, more)
 
     # ================================================================================== pushes
     def _send(self, ws: web.WebSocketResponse, payload: dict[str, Any]) -> None:

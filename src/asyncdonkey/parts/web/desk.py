@@ -16,6 +16,10 @@ watches (video, mode, record count, health) and its drive commands are ignored. 
   (never its address: two scripts on one machine are two clients). A script that does not return the cookie
   has no session and never holds control: each of its commands applies only while nobody holds it (as with
   Donkeycar, where every ``POST`` drives), and its stop frees control rather than holding it.
+* **Who calibrates** (:meth:`Desk.why_not_calibrator`): the driver; or, while nobody holds control, the client
+  that held it last and let it lapse by going quiet (nobody took it since), or the only page open. Control that
+  is free because its holder left (a watcher that pressed STOP and closed its page) is nobody's to calibrate
+  with while other pages are open: such a client takes control first, with a stopped drive command.
 """
 
 from __future__ import annotations
@@ -43,6 +47,10 @@ class Desk:
         self.last_heard = -math.inf  # runtime-clock time of the driver's latest message
         self.refused = 0  # drive commands ignored because another client drives
         self.handovers = 0
+        #: the pages (WebSockets) open now: while control is free, a lone page may calibrate, one among others not
+        self.pages: set[object] = set()
+        #: the latest driver whose control lapsed by going quiet (not released), until anyone else claims it
+        self._lapsed: object | None = None
 
     def is_free(self, now: float) -> bool:
         return self.driver is None or now - self.last_heard >= self.idle_release_s
@@ -55,11 +63,14 @@ class Desk:
                 return False
             self.driver = client
             self.handovers += 1
+            self._lapsed = None
         self.last_heard = now
         return True
 
     def release(self, client: object) -> bool:
         """``client`` gives up control (if it held it). True when it did."""
+        if self._lapsed is not None and (client is self._lapsed or client == self._lapsed):
+            self._lapsed = None
         if self.driver is not None and (client is self.driver or client == self.driver):
             self.driver = None
             return True
@@ -75,9 +86,38 @@ class Desk:
     def expire(self, now: float) -> bool:
         """Release a driver that went quiet; true when one was released."""
         if self.driver is not None and now - self.last_heard >= self.idle_release_s:
-            self.driver = None
+            self.driver, self._lapsed = None, self.driver
             return True
         return False
+
+    def opened(self, page: object) -> None:
+        """A page (WebSocket) connected: it counts among those that may be watching."""
+        self.pages.add(page)
+
+    def closed(self, page: object) -> bool:
+        """A page closed: it no longer counts, and gives up control if it held it. True when it did."""
+        self.pages.discard(page)
+        return self.release(page)
+
+    def why_not_calibrator(self, client: object, now: float) -> str | None:
+        """Why ``client`` may not calibrate now (``None``: it may; see the module docstring). A calibration changes
+        what every later command does, so it is the driver's alone: never a watcher's, and never a client's that
+        found control free because its holder left while others watch."""
+        role = self.role(client, now)
+        if role == "you":
+            return None
+        if role == "other":
+            return "another client is driving; only the driver can calibrate"
+        lapsed = self.driver if self.driver is not None else self._lapsed
+        if lapsed is not None and (client is lapsed or client == lapsed):
+            return None  # the driver went quiet (a calibration page at rest) and nobody has taken over
+        others = len(self.pages - {client})
+        if others:
+            return (
+                f"control is free and {others} other page(s) are open: take control first with a stopped command "
+                "(the calibration page's Centre and stop), then calibrate"
+            )
+        return None
 
     def role(self, client: object, now: float) -> str:
         """``"you"`` (``client`` drives), ``"other"`` (someone else does) or ``"free"``."""

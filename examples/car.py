@@ -239,7 +239,7 @@ class Status:
         )
 
     def shutdown(self) -> None:
-        if self.stream is None:
+        if self.stream is None or not self.ticks:  # a car that never drove (it refused to start) has no summary
             return
         if self._line_open:
             self.stream.write("\n")

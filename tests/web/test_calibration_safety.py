@@ -252,10 +252,9 @@ class _Watch:
 
     def run(self, command: Any) -> None:
         t = self.rig.throttle
-        self.script.rows.append(
-            _Row(self.pin, command, t.pulse, t.failsafe_active, t.safe_pulse, t.zero_pulse, t.map_throttle(0.0))
-        )
-        self.script.rows[-1].step = self.script.current
+        zero = t.map_throttle(0.0)
+        row = _Row(self.pin, command, t.pulse, t.failsafe_active, t.safe_pulse, t.zero_pulse, zero, self.script.current)
+        self.script.rows.append(row)
 
     def sample_pin(self) -> None:
         self.pin = self.rig.pca.pulse(THROTTLE_CH)

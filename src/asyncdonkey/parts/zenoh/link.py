@@ -36,6 +36,7 @@ from typing import Any
 from ...buildscope import register_close
 from ...errors import AsyncdonkeyError
 from ...extras import require
+from .certs import log_certificate_problems
 from .pairing import COMMAND_CHANNELS
 
 __all__ = ["LOOPBACK_LISTEN", "ZenohConfigError", "ZenohLink", "exposure", "link_config", "zenoh_config"]
@@ -229,12 +230,15 @@ class ZenohLink:
             self.config = config = link_config(config)
             #: why others than the intended peers could publish to this session (``[]``: nobody can)
             self.exposure = exposure(config)
+            #: certificates of the config outside their validity window on this clock (logged: :mod:`.certs`)
+            self.certificate_problems = log_certificate_problems(config, f"ZenohLink {prefix!r}")
             try:
                 session = zenoh.open(config)
             except Exception as exc:
                 raise ZenohConfigError(f"ZenohLink {prefix!r}: cannot open a Zenoh session: {exc}") from None
         else:
             self.exposure = []  # a session given to us: its owner knows how it is configured
+            self.certificate_problems = []
         self.session = session
         self._users = 0
         self._lock = threading.Lock()

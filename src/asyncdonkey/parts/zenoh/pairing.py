@@ -179,6 +179,7 @@ def make_pair(
     pilot_dir: str | Path | None = None,
     days: int = 825,
     force: bool = False,
+    not_before: datetime.datetime | None = None,
 ) -> PairFiles:
     """Write a CA, the car's and the pilot's certificates and Zenoh configs (and one per fleet ``views``).
 
@@ -186,6 +187,8 @@ def make_pair(
     subject alternative names; the first is the pilot's connect endpoint). ``car_dir``/``pilot_dir``: where
     each side's folder will live on its machine (the configs name the certificate files by absolute path);
     default: where they are written. ``force``: write over existing files (otherwise :class:`PairExists`).
+    ``not_before``: when the certificates become valid (default: five minutes ago, for clocks a little behind);
+    they stay valid ``days`` from then. Tests give a time ahead to play a car whose clock is behind.
     """
     if not car_hosts:
         raise ValueError("zenoh-pair: give at least one host name or address the pilot reaches the car by")
@@ -204,7 +207,7 @@ def make_pair(
     )
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)
-    issue = _Issuer(dirs["ca"], f"asyncdonkey pair {car}/{pilot}", days)
+    issue = _Issuer(dirs["ca"], f"asyncdonkey pair {car}/{pilot}", days, not_before)
     issue(dirs["car"], car, car_hosts)
     issue(dirs["pilot"], pilot, [pilot])
     at_car = Path(car_dir) if car_dir else dirs["car"]
@@ -251,11 +254,11 @@ class _Issuer:
     """A new CA written to ``ca_dir`` (``ca-key.pem`` 0600, ``ca.pem``), and ``issue(dir, cn, sans)``: a key and
     certificate for ``cn`` in ``dir``, with the CA's certificate beside them."""
 
-    def __init__(self, ca_dir: Path, name: str, days: int) -> None:
+    def __init__(self, ca_dir: Path, name: str, days: int, not_before: datetime.datetime | None = None) -> None:
         from cryptography.hazmat.primitives import serialization
 
-        self.days = days
-        self.key, self.cert = _ca(name, days)
+        self.validity = _validity(days, not_before)
+        self.key, self.cert = _ca(name, self.validity)
         _write_key(ca_dir / "ca-key.pem", self.key)
         self.pem = self.cert.public_bytes(serialization.Encoding.PEM)
         (ca_dir / "ca.pem").write_bytes(self.pem)
@@ -264,7 +267,7 @@ class _Issuer:
         from cryptography.hazmat.primitives import serialization
 
         role_dir.mkdir(parents=True, exist_ok=True)
-        key, cert = _leaf(self.key, self.cert, cn, sans, self.days)
+        key, cert = _leaf(self.key, self.cert, cn, sans, self.validity)
         _write_key(role_dir / f"{cn}-key.pem", key)
         (role_dir / f"{cn}-cert.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
         (role_dir / "ca.pem").write_bytes(self.pem)
@@ -378,11 +381,13 @@ def make_fleet(
     commands: Sequence[str] = DEFAULT_COMMANDS,
     days: int = 825,
     force: bool = False,
+    not_before: datetime.datetime | None = None,
 ) -> FleetFiles:
     """Write one CA, the pilot server's certificate and config, and one certificate and config per car (and
     per fleet view): see the module docstring. Cars and views connect to the server at ``server_hosts[0]``
     (all of ``server_hosts`` go into its certificate); the server listens on ``listen_host:port``.
-    ``force``: write over existing files (otherwise :class:`PairExists`).
+    ``force``: write over existing files (otherwise :class:`PairExists`). ``not_before``: as for
+    :func:`make_pair`.
     """
     cars = list(cars)
     if not cars:
@@ -402,7 +407,7 @@ def make_fleet(
         force,
     )
     ca_dir.mkdir(parents=True, exist_ok=True)
-    issue = _Issuer(ca_dir, f"asyncdonkey fleet {server}", days)
+    issue = _Issuer(ca_dir, f"asyncdonkey fleet {server}", days, not_before)
     issue(server_dir, server, server_hosts)
     host = server_hosts[0] if ":" not in server_hosts[0] else f"[{server_hosts[0]}]"
     listen = listen_host if ":" not in listen_host else f"[{listen_host}]"
@@ -492,12 +497,13 @@ def _write_key(path: Path, key) -> None:
     os.chmod(path, 0o600)
 
 
-def _validity(days: int):
-    now = datetime.datetime.now(datetime.UTC)
-    return now - datetime.timedelta(minutes=5), now + datetime.timedelta(days=days)
+def _validity(days: int, not_before: datetime.datetime | None = None) -> tuple[datetime.datetime, datetime.datetime]:
+    """The certificates' window: from ``not_before`` (default five minutes ago) for ``days`` days."""
+    start = not_before or datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
+    return start, start + datetime.timedelta(days=days, minutes=5)
 
 
-def _ca(name: str, days: int):
+def _ca(name: str, validity: tuple[datetime.datetime, datetime.datetime]):
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -505,7 +511,7 @@ def _ca(name: str, days: int):
 
     key = ec.generate_private_key(ec.SECP256R1())
     subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
-    start, end = _validity(days)
+    start, end = validity
     usage = x509.KeyUsage(
         digital_signature=True,
         key_cert_sign=True,
@@ -532,7 +538,7 @@ def _ca(name: str, days: int):
     return key, cert
 
 
-def _leaf(ca_key, ca_cert, cn: str, sans: Sequence[str], days: int):
+def _leaf(ca_key, ca_cert, cn: str, sans: Sequence[str], validity: tuple[datetime.datetime, datetime.datetime]):
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -545,7 +551,7 @@ def _leaf(ca_key, ca_cert, cn: str, sans: Sequence[str], days: int):
         except ValueError:
             alt.append(x509.DNSName(name))
     key = ec.generate_private_key(ec.SECP256R1())
-    start, end = _validity(days)
+    start, end = validity
     cert = (
         x509.CertificateBuilder()
         .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)]))

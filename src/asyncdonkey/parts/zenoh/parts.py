@@ -71,6 +71,7 @@ from ...contracts import REFUSED, Contract, Contracts, Gate, Kind
 from ...extras import require
 from ...periodic import Periodic
 from ...ratelimit import LogThrottle
+from .certs import certificate_problems, config_value
 from .codec import NDARRAY, CodecError, decode, decode_group, encode, encode_group, pack_attachment, unpack_attachment
 from .link import INTERNAL, ZenohLink
 from .sequence import IMPLAUSIBLE, MAX_AGE_S, OUT_OF_ORDER, UNCONFIRMED, SampleOrder
@@ -291,6 +292,10 @@ class ZenohSubscriber:
         max_age_s: the oldest age a sample may say it has at send time; an older one (or one whose age is not
             a finite number >= 0) is refused as ``implausible`` (:mod:`.sequence`). Raise it for a slow channel
             whose values may legitimately be older (a mode chosen minutes ago).
+        silent_after_s: when nothing has arrived on the keys for this long (``update()`` watching), log once
+            why, as far as this side can tell (:meth:`silence_report`: nothing connected, and then the config's
+            certificates against this clock; or connected, and then the sender or the access rules); ``0``:
+            never.
         ping_every_s: how often ``update()`` measures the round trip (``0``: never; ``transit_s`` stays 0).
         key_expr: what to listen to (default: the smallest key expression covering the channels; give
             ``"<prefix>/**"`` to audit every key of the car).
@@ -328,6 +333,7 @@ class ZenohSubscriber:
         group: str | None = None,
         contracts: Contracts | None = None,
         max_age_s: float = MAX_AGE_S,
+        silent_after_s: float = 5.0,
     ) -> None:
         zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
@@ -339,6 +345,12 @@ class ZenohSubscriber:
         self.channels = tuple(channels)
         self.late_after_s = float(late_after_s)
         self.ping_every_s = float(ping_every_s)
+        self.silent_after_s = float(silent_after_s)
+        self._heard_at: float | None = None
+        self._watch_from: float | None = None
+        self._silence_logged = False
+        #: silences logged (nothing on the keys for ``silent_after_s``)
+        self.silences = 0
         #: what each cell holds: one channel each, or the whole group in one
         self._cells: tuple[str, ...] = (self.group,) if self.group is not None else self.channels
         self._index = {link.key(name): i for i, name in enumerate(self._cells)}
@@ -411,6 +423,7 @@ class ZenohSubscriber:
             if not key.startswith(f"{self.link.prefix}/{INTERNAL}/"):
                 self._reject(key, "is not one of the configured channels")
             return
+        self._heard_at = self.link.now()  # something reaches us, whatever becomes of it
         meta = unpack_attachment(_bytes(sample.attachment))
         delete = sample.kind == self._delete
         if meta is None and not delete:
@@ -574,15 +587,69 @@ class ZenohSubscriber:
             return {ch: (now - h.origin if h else math.inf) for ch, h in zip(self.channels, held, strict=True)}
 
     async def update(self) -> None:
-        """Measure the round trip to the other sessions on the prefix every ``ping_every_s`` (for the ages)."""
+        """Measure the round trip to the other sessions on the prefix every ``ping_every_s`` (for the ages), and
+        say once why nothing arrives when nothing has for ``silent_after_s``."""
         clock = get_clock()
         self.link.now = clock.now
-        if self.ping_every_s <= 0:
+        periods = [p for p in (self.ping_every_s, self.silent_after_s / 2) if p > 0]
+        if not periods:
             return
-        with Periodic(self.ping_every_s) as every:
+        self._watch_from = clock.now()
+        next_ping = -math.inf
+        with Periodic(min(periods)) as every:
             while not self.link.closed:
-                self.link.ping()
+                now = clock.now()
+                if self.ping_every_s > 0 and now >= next_ping:
+                    self.link.ping()
+                    next_ping = now + self.ping_every_s - 1e-9
+                self._watch_silence(now)
                 await every.next()
+
+    # -- silence -----------------------------------------------------------------------------------------
+    def _watch_silence(self, now: float) -> None:
+        """Log once per silence (nothing on the keys for ``silent_after_s``) why this receiver thinks nothing
+        comes (:meth:`silence_report`), and once when samples come again."""
+        if self.silent_after_s <= 0:
+            return
+        heard = self._heard_at
+        since = heard if heard is not None else self._watch_from
+        if since is None or now - since < self.silent_after_s:
+            if self._silence_logged and heard is not None:
+                self._silence_logged = False
+                logger.info("ZenohSubscriber on %r: samples arrive again", self.link.prefix)
+            return
+        if not self._silence_logged:
+            self._silence_logged = True
+            self.silences += 1
+            logger.warning("%s", self.silence_report(now - since))
+
+    def silence_report(self, silent_s: float) -> str:
+        """Why nothing has come for ``silent_s`` seconds, as far as this side can tell: what the session is
+        connected to and, when that is nothing, the certificates of its config against this clock."""
+        keys = ", ".join(repr(k) for k in self._index)
+        head = f"ZenohSubscriber on {self.link.prefix!r}: nothing on {keys} for {silent_s:.1f} s"
+        connected = _connections(self.link.session)
+        if connected is None:
+            return f"{head} (the session cannot say what it is connected to)"
+        if connected:
+            return (
+                f"{head}, though this session is connected to {connected} other Zenoh session(s): the sender is"
+                " not publishing these keys, or access rules drop its puts (a car takes commands only from the"
+                " certificate name its rules give)"
+            )
+        config = self.link.config
+        endpoints = config_value(config, "connect/endpoints") if config is not None else None
+        where = f" at {', '.join(map(str, endpoints))}" if endpoints else ""
+        problems = certificate_problems(config) if config is not None else []
+        why = (
+            f"; on this side: {'; '.join(problems)}"
+            if problems
+            else " (a certificate of another CA, or outside its validity window on either side's clock)"
+        )
+        return (
+            f"{head}, and this session is connected to no other Zenoh session: the sender is not running, cannot"
+            f" reach this machine{where}, or the TLS handshake fails{why}"
+        )
 
     def counters(self) -> dict[str, int]:
         with self._gate_lock:
@@ -651,6 +718,18 @@ def covering_key(keys: Sequence[str]) -> str:
             break
         common.append(parts[0])
     return "/".join([*common, "**"])
+
+
+def _connections(session: Any) -> int | None:
+    """How many other Zenoh sessions (peers, routers, clients) this session is connected to; ``None`` if it
+    cannot say."""
+    try:
+        return len(list(session.info.transports()))
+    except Exception:
+        try:
+            return len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+        except Exception:
+            return None
 
 
 def _bytes(z: Any) -> bytes | None:

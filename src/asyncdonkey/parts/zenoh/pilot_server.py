@@ -43,6 +43,7 @@ from ...clock import get_clock
 from ...extras import require
 from ...ratelimit import LogThrottle
 from .batcher import BatchLoop, Frame, FrameBatcher
+from .certs import log_certificate_problems
 from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
@@ -58,10 +59,10 @@ COMMAND = ("pilot/angle", "pilot/throttle")
 class _Car:
     """One car's channels on the server: its frames in, its commands out, on the shared session."""
 
-    def __init__(self, name: str, session: Any, prefix: str, ping_every_s: float) -> None:
+    def __init__(self, name: str, session: Any, prefix: str, ping_every_s: float, silent_after_s: float) -> None:
         self.name = name
         self.link = ZenohLink(prefix, session=session)
-        self.frames = ZenohSubscriber(self.link, [CAMERA], ping_every_s=ping_every_s)
+        self.frames = ZenohSubscriber(self.link, [CAMERA], ping_every_s=ping_every_s, silent_after_s=silent_after_s)
         self.commands = ZenohPublisher(self.link, list(COMMAND), group=PILOT_COMMAND)
         self.answered = 0
         self.wrong_frames = 0
@@ -89,6 +90,8 @@ class PilotServer:
         max_batch: the most frames per model call.
         prefix: the key prefix of a car, with ``{car}`` for its name.
         ping_every_s: round-trip measurement per car (keeps the frames' ages true; 0: never).
+        silent_after_s: when a car's frames have not come for this long, log once why, as far as the server can
+            tell (:meth:`.ZenohSubscriber.silence_report`); ``0``: never.
         insecure: open the session even though others could publish to it (see below). For an isolated bench.
 
     **Frames are commands.** Whoever can publish ``cars/car1/cam/image_array`` to the server chooses the frames
@@ -115,6 +118,7 @@ class PilotServer:
         prefix: str = "cars/{car}",
         ping_every_s: float = 0.5,
         insecure: bool = False,
+        silent_after_s: float = 5.0,
     ) -> None:
         names = list(dict.fromkeys(cars))
         if not names or isinstance(cars, str):
@@ -133,7 +137,7 @@ class PilotServer:
         self.cars: dict[str, _Car] = {}
         try:
             for name in names:
-                self.cars[name] = _Car(name, session, prefix.format(car=name), ping_every_s)
+                self.cars[name] = _Car(name, session, prefix.format(car=name), ping_every_s, silent_after_s)
         except Exception:
             self.close()
             raise
@@ -152,6 +156,7 @@ class PilotServer:
             )
         if why:
             logger.warning("pilot server: anyone who can reach this session can steer the cars (it %s)", "; ".join(why))
+        log_certificate_problems(config, "pilot server")
         try:
             return zenoh.open(config)
         except Exception as exc:

@@ -23,6 +23,10 @@ what it saw:
 What happens in threads that were running before the test started is not the test's (a thread left behind by an
 earlier test). The guard cannot see everything a kind covers: a wait on ``time.sleep`` for a thread, an assertion
 on wall-clock time or a helper reached only through an object are the author's to mark (see docs/testing.md).
+
+**No process outlives its test.** After each ``subprocess`` test, a process it started (a child of this one, or
+one of that child's) that is still running a moment later is killed, and the test fails naming its command line:
+a car that hangs instead of exiting must fail the test that started it, not run on for hours after it.
 """
 
 from __future__ import annotations
@@ -30,9 +34,12 @@ from __future__ import annotations
 import asyncio
 import asyncio.events
 import dis
+import os
+import signal
 import socket
 import sys
 import threading
+import time
 import types
 from collections.abc import Callable, Generator
 from pathlib import Path
@@ -204,6 +211,77 @@ def _donkeycar_evidence(item: pytest.Item) -> str | None:
         if _is_donkeycars(value):
             return f"its parameter {name} is Donkeycar's"
     return None
+
+
+# ---------------------------------------------------------------------------------------- leftover processes
+#: how long a test's processes may take to finish exiting after it (a process killed or told to stop, not waited)
+LEFTOVER_GRACE_S = 2.0
+
+
+def _processes() -> dict[tuple[int, int], tuple[int, bytes]]:
+    """Every live process: ``(pid, start time) -> (parent pid, state)``, read from /proc (zombies are ended)."""
+    found: dict[tuple[int, int], tuple[int, bytes]] = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat", "rb") as f:
+                stat = f.read()
+        except OSError:  # it ended meanwhile
+            continue
+        fields = stat[stat.rfind(b")") + 2 :].split()  # after the command name, which may hold spaces
+        if fields[0] not in (b"Z", b"X"):
+            found[(int(name), int(fields[19]))] = (int(fields[1]), fields[0])
+    return found
+
+
+def _descendants() -> set[tuple[int, int]]:
+    """This process's live children, their children, and so on, as ``(pid, start time)``."""
+    procs = _processes()
+    ours: set[tuple[int, int]] = set()
+    todo = [os.getpid()]
+    while todo:
+        parent = todo.pop()
+        for key, (ppid, _) in procs.items():
+            if ppid == parent and key not in ours:
+                ours.add(key)
+                todo.append(key[0])
+    return ours
+
+
+def _command_line(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace").strip() or f"pid {pid}"
+    except OSError:
+        return f"pid {pid}"
+
+
+@pytest.fixture(autouse=True)
+def _no_process_outlives_its_test(request: pytest.FixtureRequest) -> Generator[None, None, None]:
+    """After a ``subprocess`` test (and its fixtures, which this one outlasts), kill what it left running and fail
+    it, naming the command lines. Processes of wider-scoped fixtures were already running when it started."""
+    if request.node.get_closest_marker("subprocess") is None:
+        yield
+        return
+    before = _descendants()
+    yield
+    deadline = time.monotonic() + LEFTOVER_GRACE_S
+    while (left := _descendants() - before) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    if not left:
+        return
+    lines = {pid: _command_line(pid) for pid, _ in left}
+    for pid, _ in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    pytest.fail(
+        f"{request.node.nodeid} left {len(lines)} process(es) running {LEFTOVER_GRACE_S:g} s after it ended "
+        "(killed now): " + "; ".join(f"[{pid}] {cmd[:300]}" for pid, cmd in sorted(lines.items())),
+        pytrace=False,
+    )
 
 
 # ------------------------------------------------------------------------------------------------------ hooks

@@ -104,12 +104,12 @@ def shut_down_parts(entries: Sequence[Any]) -> list[str]:
 
 def _shut_down_phase(entries: Sequence[Any]) -> list[str]:
     outcomes: dict[str, BaseException | None] = {}
-    threads = []
+    threads: list[tuple[Any, threading.Thread, float]] = []
     for e in entries:
         t = threading.Thread(target=_shut_down_one, args=(e, outcomes), name=f"shutdown:{e.name}", daemon=True)
         threads.append((e, t, time.monotonic() + e.shutdown_timeout + 0.5))
         t.start()
-    failed = []
+    failed: list[str] = []
     for e, t, deadline in threads:
         t.join(max(0.0, deadline - time.monotonic()))
         if t.is_alive():

@@ -1,0 +1,58 @@
+"""The suite's own guard: a ``subprocess`` test that leaves a process running fails, and the process is killed.
+
+Run on a copy of the suite's conftest.py in a pytest of its own, so the failing test fails there, not here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest_plugins = ["pytester"]
+
+CONFTEST = Path(__file__).resolve().parents[1] / "conftest.py"
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` is still running (a zombie has ended: only its exit status is left)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2 :].split()[0] not in (b"Z", b"X")
+
+
+@pytest.mark.subprocess
+def test_a_process_left_running_fails_its_test_by_name_and_is_killed(pytester: pytest.Pytester) -> None:
+    pidfile = pytester.path / "pid"
+    pytester.makeconftest(CONFTEST.read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    subprocess: starts a process\n")
+    pytester.makepyfile(
+        f"""
+        import subprocess
+        import sys
+        from pathlib import Path
+
+        import pytest
+
+
+        @pytest.mark.subprocess
+        def test_leaves_a_car_running():
+            proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)  # the stuck car"])
+            Path({str(pidfile)!r}).write_text(str(proc.pid))
+
+
+        @pytest.mark.subprocess
+        def test_waits_for_its_process():
+            subprocess.run([sys.executable, "-c", "pass"], check=True, timeout=60)
+        """
+    )
+    result = pytester.runpytest_subprocess("-p", "no:randomly", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=2, errors=1)
+    result.stdout.fnmatch_lines(
+        ["*test_leaves_a_car_running left 1 process(es) running 2 s after it ended (killed now): *time.sleep(120)*"]
+    )
+    assert not running(int(pidfile.read_text()))
+    assert "test_waits_for_its_process left" not in result.stdout.str()

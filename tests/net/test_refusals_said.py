@@ -128,6 +128,7 @@ async def test_a_fleet_server_and_car_whose_certificates_are_not_valid_yet_say_w
             ]
 
         assert await until(lambda: len(server_said()) == 1, timeout=2.0)
+        assert "gpu-cert.pem is not valid until" in server_said()[0]  # its certificates checked again
         assert server.counters()["car1"]["answered"] == 0
     finally:
         server.stop()

@@ -131,13 +131,17 @@ class PilotServer:
         self.image_shape: tuple[int, ...] | None = getattr(getattr(model, "pilot", None), "image_shape", None)
         self._log = LogThrottle(5.0)
         self._owned = session is None
+        #: the config the server opened its session with (``None`` for a session given to it)
+        self.config: Any = None
         if session is None:
-            session = self._open(config, insecure)
+            self.config = link_config(config)
+            session = self._open(self.config, insecure)
         self.session = session
         self.cars: dict[str, _Car] = {}
         try:
             for name in names:
-                self.cars[name] = _Car(name, session, prefix.format(car=name), ping_every_s, silent_after_s)
+                car = self.cars[name] = _Car(name, session, prefix.format(car=name), ping_every_s, silent_after_s)
+                car.link.config = self.config  # what a silence report checks the certificates of
         except Exception:
             self.close()
             raise
@@ -145,7 +149,6 @@ class PilotServer:
     @staticmethod
     def _open(config: Any, insecure: bool) -> Any:
         zenoh = require("zenoh", "zenoh", "the pilot server")
-        config = link_config(config)
         why = exposure(config)
         if why and not insecure:
             raise ZenohConfigError(

@@ -6,6 +6,7 @@ No network here: the configs are read back as files; the fleet's rules at work a
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import stat
@@ -42,6 +43,11 @@ def test_the_defaults_used_are_printed(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "defaults used" in text and "car name 'car1'" in text and "pilot name 'pilot'" in text
     assert "car host 'localhost'" in text
+    # the window every machine's clock must be in: from a few minutes ago, 825 days long
+    line = next(t for t in text.splitlines() if t.startswith("certificates valid from"))
+    start = datetime.datetime.strptime(line.split()[3] + " " + line.split()[4], "%Y-%m-%d %H:%M")
+    now = datetime.datetime.now(datetime.UTC).replace(tzinfo=None)
+    assert datetime.timedelta(0) <= now - start <= datetime.timedelta(minutes=7) and "(NTP)" in line
     assert main(["zenoh-pair", str(tmp_path / "q"), "--car", "a", "--pilot", "b", "--car-host", "10.0.0.2"]) == 0
     assert "defaults used" not in capsys.readouterr().out
 
@@ -64,6 +70,7 @@ def test_fleet_pairing_writes_a_server_that_confines_each_car_to_its_keys(tmp_pa
     argv = ["zenoh-pair", str(out), "--fleet", "--cars", "car1", "car2", "--server", "gpu", "--view", "base"]
     assert main([*argv, "--server-host", "10.0.0.9", "--port", "7450"]) == 0
     text = capsys.readouterr().out
+    assert "certificates valid from" in text
     assert "server gpu" in text and "car    car1" in text and "car    car2" in text and "view   base" in text
     server = _json5(out / "server" / "server.json5")
     assert server["mode"] == "router" and server["listen"]["endpoints"] == ["tls/0.0.0.0:7450"]

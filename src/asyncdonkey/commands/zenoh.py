@@ -132,7 +132,15 @@ def _cmd_pair(args: argparse.Namespace) -> int:
     for view, cfg in files.view_configs.items():
         print(f"view  {view}: {cfg}")
     print(f"CA key (issue nothing else with it; keep it on neither machine): {files.ca_key}")
+    print(_validity_line(files.valid))
     return 0
+
+
+def _validity_line(valid: Any) -> str:
+    """When the certificates are valid: a machine whose clock is outside that window can neither connect nor be
+    connected to (a Raspberry Pi without a clock battery is behind until NTP answers)."""
+    start, end = (t.strftime("%Y-%m-%d %H:%M UTC") for t in valid)
+    return f"certificates valid from {start} to {end}: every machine's clock must be inside that window (NTP)"
 
 
 def _pair_fleet(args: argparse.Namespace, commands: Any, make_fleet: Any) -> int:
@@ -161,6 +169,7 @@ def _pair_fleet(args: argparse.Namespace, commands: Any, make_fleet: Any) -> int
     for view, cfg in files.view_configs.items():
         print(f"view   {view}: {cfg}")
     print(f"CA key (issue nothing else with it; keep it on no machine of the fleet): {files.ca_key}")
+    print(_validity_line(files.valid))
     return 0
 
 

@@ -121,6 +121,8 @@ class PairFiles:
     pilot_dir: Path
     ca_key: Path
     view_configs: dict[str, Path] = field(default_factory=dict)
+    #: when the certificates become valid and when they expire (UTC): every machine's clock must be inside
+    valid: tuple[datetime.datetime, datetime.datetime] | None = None
 
 
 def car_acl(prefix: str, pilot_cn: str, commands: Sequence[str] = DEFAULT_COMMANDS) -> dict:
@@ -227,6 +229,7 @@ def make_pair(
         car_dir=dirs["car"],
         pilot_dir=dirs["pilot"],
         ca_key=dirs["ca"] / "ca-key.pem",
+        valid=issue.validity,
     )
     header = "// written by asyncdonkey zenoh-pair for car {car!r} (keys {prefix}/**) and pilot host {pilot!r}\n"
     files.car_config.write_text(
@@ -291,6 +294,8 @@ class FleetFiles:
     car_dirs: dict[str, Path]
     ca_key: Path
     view_configs: dict[str, Path] = field(default_factory=dict)
+    #: when the certificates become valid and when they expire (UTC): every machine's clock must be inside
+    valid: tuple[datetime.datetime, datetime.datetime] | None = None
 
 
 def server_acl(cars: Sequence[str], views: Sequence[str] = (), prefix: str = "cars/{car}") -> dict:
@@ -425,6 +430,7 @@ def make_fleet(
         car_configs={},
         car_dirs={},
         ca_key=ca_dir / "ca-key.pem",
+        valid=issue.validity,
     )
     files.server_config.write_text(
         f"// written by asyncdonkey zenoh-pair --fleet: pilot server {server!r} for cars {', '.join(cars)}\n"

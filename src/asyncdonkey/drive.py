@@ -331,7 +331,7 @@ class Drive:
         fast locals bound once; what is decided once, or rare (a limit, a part cut short, verbose logs), is a method.
         """
         now, entries, table = self.clock.now, self.tick_runs, self.table
-        d, origins, dormant = self.mem.d, self.mem.origins, self.mem.dormant
+        d, origins = self.mem.d, self.mem.origins
         buf, window, ncol, commit = table.buf, table.window, table.ncol, table.commit
         part_failed, report_block, block_report_s = self._part_failed, self._report_block, self.block_report_s
         sched, stop_at, end_at = self._schedule(rate_hz, max_loop_count, duration, end := now())
@@ -352,8 +352,6 @@ class Drive:
                 beat(start)
             if loops == 0:
                 self.first_start = start
-            if dormant:
-                dormant.clear()
             pos = (loops % window) * ncol
             buf[pos], buf[pos + 1] = deadline, start
             pos += 2
@@ -361,9 +359,7 @@ class Drive:
 
             for e in entries:
                 cond = e.run_condition
-                if cond is not None and not d.get(cond):
-                    if e.outputs:
-                        dormant.update(e.outputs)
+                if cond is not None and not d.get(cond):  # skipped: writes nothing, its channels keep their origins
                     buf[pos] = nan
                     pos += 1
                     continue

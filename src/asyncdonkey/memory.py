@@ -44,7 +44,7 @@ class Memory:
     listed in ``docs/donkeycar.md``.
     """
 
-    __slots__ = ("_now", "d", "dormant", "origins", "stamps")
+    __slots__ = ("_now", "d", "origins", "stamps")
 
     def __init__(self, *, clock: Callable[[], float] | None = None) -> None:
         # keyword-only: Donkeycar's Memory(*args, **kw) ignores its arguments, so a positional one here would
@@ -54,9 +54,6 @@ class Memory:
         self.stamps: dict[str, float] = {}
         #: channel → runtime-clock time of the sensing behind the current value (its origin)
         self.origins: dict[str, float] = {}
-        #: channels whose producing part was skipped by its run condition on the current tick: their (old)
-        #: origins do not count when a consumer's origin is inherited (see ``docs/provenance.md``)
-        self.dormant: set[str] = set()
         self._now: Callable[[], float] = clock or time.monotonic
 
     def use_clock(self, now: Callable[[], float]) -> None:
@@ -191,8 +188,6 @@ class Memory:
         self.d[key] = value
         self.stamps[key] = now
         self.origins[key] = now if origin is None else origin
-        if self.dormant:
-            self.dormant.discard(key)
 
     def __repr__(self) -> str:
         return f"Memory({self.d!r})"

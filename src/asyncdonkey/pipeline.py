@@ -255,8 +255,8 @@ def react_chain(runs: tuple[PartRun, ...], channels: set[str]) -> list[PartRun]:
 
 
 class TickKicker:
-    """What the tick calls in a pipelined part's place: mark it dormant when its run condition is false (done
-    by the tick itself, from ``run_condition`` and ``outputs``), else start it if it starts on ticks."""
+    """What the tick calls in a pipelined part's place: start it if it starts on ticks (the tick skips it when its
+    run condition is false, from ``run_condition``, as any part)."""
 
     __slots__ = (
         "args",

@@ -33,6 +33,7 @@ import asyncio
 import concurrent.futures
 import enum
 import inspect
+import itertools
 import logging
 import math
 import sys
@@ -42,6 +43,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from .contracts import ContractViolation
 from .errors import OutputCountError, PartSpecError, PartTimeoutError
 from .memory import Memory
+from .selectors import OutputSources, declared_sources
 
 if TYPE_CHECKING:
     from .contracts import Contract, Contracts
@@ -56,6 +58,8 @@ _INF = math.inf
 #: the origin of a value with nothing sensed behind it (computed only from channels that have no origin): such an
 #: output is stored without an origin, so its age is infinite, as a never-written channel's
 _NEVER = -math.inf
+#: as many ``inf`` as any part has inputs: the default of ``map(origins.get, channels, _INFS)``
+_INFS = itertools.repeat(_INF)
 #: types whose instances cannot change: what ``_immutable`` has found so (numbers, strings, enums, numpy scalars),
 #: looked up directly on the hot path
 _IMMUTABLE_TYPES: set[type] = {int, float, bool, complex, str, bytes, type(None), range, type(Ellipsis)}
@@ -190,7 +194,7 @@ def build_entry(
     e.call = with_timeout(call, e.timeout, name) if e.timeout is not None else call
     e.args = _arg_getter(mem, ins)
     origin_fn = getattr(part, "output_origin", None)
-    e.store = _storer(mem, name, ins, outs, origin_fn if callable(origin_fn) else None)
+    e.store = _storer(mem, name, part, ins, outs, origin_fn if callable(origin_fn) else None)
     e.input_origin = _input_origin(mem, ins) if _input_channels(ins) else None
     e.store_fixed = _fixed_storer(mem, name, outs)
     shutdown = getattr(part, "shutdown", None)
@@ -304,65 +308,32 @@ def _arg_getter(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[], Sequen
 def _storer(
     mem: Memory,
     name: str,
+    part: Any,
     ins: tuple[str | None, ...],
     outs: tuple[str, ...],
     stated: Callable[[], float | None] | None,
 ) -> Callable[[Any, Sequence[Any], float], None] | None:
     """``store(result, args, now)``: write the outputs with their write time and origin (module docstring).
 
-    Which of the rule's cases can apply is decided here, once: a source or a part that states its origin, a
-    part with one input channel (every output has that channel's origin, whatever the part did with it), or
-    the general case, where each output is first tested for being one of the inputs passed through.
+    Which case of the rule applies is decided here, once: a source or a part that states its origin, a declared
+    selector, a part with one input channel (its outputs have that channel's origin), or any other part (the
+    oldest of its inputs' origins, one ``min`` per call, and the in-place check of an output that is a mutable
+    input object).
     """
     if not outs:
         return None
-    d, stamps, origins = mem.d, mem.stamps, mem.origins
     sources = _input_channels(ins)
-    inherited = _input_origin(mem, ins)
-    n = len(outs)
     unpack = _unpacker(name, outs)
     if stated is not None or not sources:
-        return _stated_storer(mem, outs, unpack, inherited if sources else None, stated)
+        return _stated_storer(mem, outs, unpack, _input_origin(mem, ins) if sources else None, stated)
+    declared = declared_sources(part, len(ins), len(outs))
+    if declared is not None:
+        return _selector_storer(mem, name, ins, outs, unpack, declared)
     if len(sources) == 1:
         # one input channel: a value made from it, passed through or written into in place has only its
-        # sensing behind it, whether its producer ran this tick or not
+        # sensing behind it
         return _one_input_storer(mem, outs, unpack, sources[0])
-
-    origin_for = _output_origin(mem, ins, inherited)
-
-    if n == 1:
-        (k1,) = outs
-
-        def store_one(value: Any, args: Sequence[Any], now: float) -> None:
-            o = origin_for(value, args)
-            if o is None:
-                o = inherited()
-            d[k1] = value
-            stamps[k1] = now
-            if o > _NEVER:
-                origins[k1] = o
-            else:
-                origins.pop(k1, None)
-
-        return store_one
-
-    def store_many(values: Any, args: Sequence[Any], now: float) -> None:
-        values = unpack(values)
-        common = None
-        for k, v in zip(outs, values, strict=False):
-            o = origin_for(v, args)
-            if o is None:
-                if common is None:
-                    common = inherited()
-                o = common
-            d[k] = v
-            stamps[k] = now
-            if o > _NEVER:
-                origins[k] = o
-            else:
-                origins.pop(k, None)
-
-    return store_many
+    return _oldest_storer(mem, ins, outs, unpack)
 
 
 def _stated_storer(
@@ -444,49 +415,155 @@ def _one_input_storer(
     return store_many_from_one
 
 
-def _output_origin(
-    mem: Memory, ins: tuple[str | None, ...], inherited: Callable[[], float]
-) -> Callable[[Any, Sequence[Any]], float | None]:
-    """``origin(value, args)``: the origin of one output of a part reading several channels (the rule above), or
-    ``None`` for "inherited" (the store asks ``inherited()`` once for all such outputs).
+def _oldest_storer(
+    mem: Memory, ins: tuple[str | None, ...], outs: tuple[str, ...], unpack: Callable[[Any], Any]
+) -> Callable[[Any, Sequence[Any], float], None]:
+    """A part reading several channels, not declaring what it selected: every output gets the oldest origin of
+    its inputs. An output that is a mutable input object may hold what the part wrote into it: every channel
+    holding that object is aged to that origin too (:func:`_in_place_ager`)."""
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+    oldest = _input_origin(mem, ins)
+    age_holders = _in_place_ager(mem, ins)
+    immutable = _IMMUTABLE_TYPES
+    if len(outs) == 1:
+        (k1,) = outs
 
-    An output that is one of the input objects: if it is immutable, the origin of the input it is. The same
-    object may sit in several inputs (a small constant both a driver and a skipped pilot published): a live input
-    wins over a dormant one, then the oldest. If it is mutable, the part may have written the other inputs' data
-    into it (``np.add(frame, imu, out=frame); return frame``) and the identity says nothing about its content: the
-    oldest of every input holding it and of the inherited origin. An input holding it without an origin (nothing
-    sensed behind it) gives ``_NEVER``.
+        def store_oldest_one(value: Any, args: Sequence[Any], now: float) -> None:
+            o = oldest()
+            d[k1] = value
+            stamps[k1] = now
+            if o > _NEVER:
+                origins[k1] = o
+            else:
+                origins.pop(k1, None)
+            if type(value) not in immutable:
+                age_holders(value, args, o)
+
+        return store_oldest_one
+
+    def store_oldest_many(values: Any, args: Sequence[Any], now: float) -> None:
+        values = unpack(values)
+        o = oldest()
+        for k, v in zip(outs, values, strict=False):
+            d[k] = v
+            stamps[k] = now
+            if o > _NEVER:
+                origins[k] = o
+            else:
+                origins.pop(k, None)
+        for v in values[: len(outs)]:
+            if type(v) not in immutable:
+                age_holders(v, args, o)
+
+    return store_oldest_many
+
+
+def _in_place_ager(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[Any, Sequence[Any], float], None]:
+    """``age(value, args, origin)``: if ``value`` is one of the input objects and can be written into (an array,
+    a list, a dict), every channel holding it gets ``origin`` when it is younger.
+
+    Why: a part that fuses an old IMU sample into the camera's frame in place (``np.add(img, imu, out=img);
+    return img``) changes what ``cam/image_array`` holds, and every other channel holding that frame, not only its
+    own output. Identity says the object is shared, not whether it was written into: a part returning an input
+    array as it is ages its holders too (the safe side; a selector that only picks declares, :mod:`.selectors`).
+    Not seen: an input written into and not returned, and an object held inside another (a list in a dict).
     """
-    oget, dormant = mem.origins.get, mem.dormant
-    # inputs whose value may be passed through as an output: (argument index, channel)
-    passthrough = tuple((i, k) for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
-    immutable_types = _IMMUTABLE_TYPES
+    d, origins = mem.d, mem.origins
+    valued = tuple(i for i, k in enumerate(ins) if k is not None and not k.endswith(AGE_SUFFIX))
 
-    def origin(value: Any, args: Sequence[Any]) -> float | None:
-        if value is None:
-            return None
-        o = None
-        live = False
-        for i, k in passthrough:
+    def age(value: Any, args: Sequence[Any], origin: float) -> None:
+        if value is None or origin == _NEVER:
+            return
+        for i in valued:
             if args[i] is value:
-                t = oget(k)
-                if t is None:
-                    t = _NEVER
-                k_live = k not in dormant
-                if o is None or (k_live and not live) or (k_live == live and t < o):
-                    o, live = t, k_live
-        if o is None or type(value) in immutable_types or _immutable(value):  # (the common types inlined)
-            return o
-        # a mutable object: every input holding it, and all the others it could have been combined with
-        t = inherited()
-        for i, k in passthrough:
-            if args[i] is value:
-                o = oget(k, _NEVER)
-                if o < t:
-                    t = o
-        return t
+                break
+        else:
+            return
+        if _immutable(value):
+            return
+        for k, held in d.items():
+            if held is value:
+                t = origins.get(k)
+                if t is not None and t > origin:
+                    origins[k] = origin
 
-    return origin
+    return age
+
+
+def _selector_storer(
+    mem: Memory,
+    name: str,
+    ins: tuple[str | None, ...],
+    outs: tuple[str, ...],
+    unpack: Callable[[Any], Any],
+    declared: OutputSources,
+) -> Callable[[Any, Sequence[Any], float], None]:
+    """A declared selector (:mod:`.selectors`): each output gets the oldest origin of the inputs its declaration
+    names for this call (``None``: of all inputs). Each distinct declaration is checked and turned into channel
+    names once, then looked up (a drive mode returns one of three)."""
+    d, stamps, origins = mem.d, mem.stamps, mem.origins
+    oget = origins.get
+    plans: dict[Any, tuple[tuple[str, ...], ...]] = {}
+    n = len(outs)
+    make_plan = _selection_plan(name, ins, outs)
+
+    def store_selected(values: Any, args: Sequence[Any], now: float) -> None:
+        picked = declared(*args)
+        try:
+            plan = plans[picked]
+        except (KeyError, TypeError):  # new, or unhashable (a list): checked each time
+            plan = make_plan(picked)
+            if len(plans) < 64:
+                try:
+                    plans[picked] = plan
+                except TypeError:
+                    pass
+        values = (values,) if n == 1 else unpack(values)
+        for k, v, group in zip(outs, values, plan, strict=False):
+            d[k] = v
+            stamps[k] = now
+            o = min(map(oget, group, _INFS), default=_INF)
+            if o < _INF:
+                origins[k] = o
+            else:
+                origins.pop(k, None)
+
+    return store_selected
+
+
+def _selection_plan(
+    name: str, ins: tuple[str | None, ...], outs: tuple[str, ...]
+) -> Callable[[Any], tuple[tuple[str, ...], ...]]:
+    """``plan(declaration)``: for each output, the channels whose origins date it; a declaration that is not one
+    entry per output, each an input index, a tuple of them or ``None``, raises naming the part."""
+    every = _input_channels(ins)
+    channel = tuple(None if k is None else k.removesuffix(AGE_SUFFIX) for k in ins)
+
+    def bad(picked: Any, why: str) -> PartSpecError:
+        return PartSpecError(
+            f"{name}: output_sources() returned {picked!r}, {why}; expected one entry per output {list(outs)}: an "
+            f"input index 0..{len(ins) - 1}, a tuple of them, or None"
+        )
+
+    def channels_of(picked: Any, src: Any) -> tuple[str, ...]:
+        if src is None:
+            return every
+        group = src if isinstance(src, tuple) else (src,)
+        for i in group:
+            if type(i) is not int or not 0 <= i < len(ins):
+                raise bad(picked, f"with {i!r} not an input index")
+        return tuple(k for i in group if (k := channel[i]) is not None)
+
+    def plan(picked: Any) -> tuple[tuple[str, ...], ...]:
+        try:
+            entries = tuple(picked)
+        except TypeError:
+            raise bad(picked, "not a sequence") from None
+        if len(entries) != len(outs):
+            raise bad(picked, f"{len(entries)} entries for {len(outs)} outputs")
+        return tuple(channels_of(picked, src) for src in entries)
+
+    return plan
 
 
 def _put_origin(origins: dict[str, float], k: str, o: float) -> None:
@@ -536,65 +613,24 @@ def _input_channels(ins: tuple[str | None, ...]) -> tuple[str, ...]:
 
 
 def _input_origin(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[], float]:
-    """``origin()``: the oldest origin among the inputs that count (the rule above).
+    """``origin()``: the oldest origin among the part's input channels that have one, ``_NEVER`` if none has.
 
-    What counts is decided by the inputs read for their value: an ``@age`` input reads a time, not data, so a
-    fresh channel read only for its age does not make a switched-off pilot's command that the part also reads
-    count as fresh (its origin still joins the minimum). When none counts (each input was written by a producer
-    skipped this tick, or never), the oldest origin among all the inputs: a value computed from a switched-off
-    pilot's last command is as old as that command, never younger. ``_NEVER`` when no input has an origin at all
-    (nothing sensed is behind the value).
+    Every input counts, whatever wrote it and whenever: a channel's origin is the truth about the value it holds,
+    so the oldest of them is never younger than the data the part could have used. A channel read only for its
+    age (``"x@age"``) counts too: the part may compute with that age (a gate passing a command while the frame is
+    young), and counting it can only make the output older. A channel never written has no origin and no data:
+    it does not count.
     """
-    oget, dormant = mem.origins.get, mem.dormant
+    oget = mem.origins.get
     sources = _input_channels(ins)
     if len(sources) == 1:
         (k0,) = sources
         return lambda: oget(k0, _NEVER)
-    valued = {k for k in ins if k is not None and not k.endswith(AGE_SUFFIX)} or set(sources)
-    if len(valued) == len(sources):
-        return _oldest_counted(oget, dormant, sources)
-    plan = tuple((k, k in valued) for k in sources)
+    infs = (_INF,) * len(sources)
 
     def origin() -> float:
-        live = idle = _INF
-        counted = False
-        for k, by_value in plan:
-            t = oget(k)
-            if t is None:
-                continue
-            if k in dormant:
-                if t < idle:
-                    idle = t
-            else:
-                counted = counted or by_value
-                if t < live:
-                    live = t
-        if counted:
-            return live
-        t = live if live < idle else idle
+        t = min(map(oget, sources, infs))
         return t if t < _INF else _NEVER
-
-    return origin
-
-
-def _oldest_counted(oget: Callable[..., Any], dormant: set[str], sources: tuple[str, ...]) -> Callable[[], float]:
-    """``_input_origin`` for a part reading every input for its value (no ``@age`` only channel): any live input
-    counts."""
-
-    def origin() -> float:
-        live = idle = _INF
-        for k in sources:
-            t = oget(k)
-            if t is None:
-                continue
-            if k in dormant:
-                if t < idle:
-                    idle = t
-            elif t < live:
-                live = t
-        if live < _INF:
-            return live
-        return idle if idle < _INF else _NEVER
 
     return origin
 

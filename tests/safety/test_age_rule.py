@@ -100,6 +100,123 @@ async def test_a_pass_through_after_a_switched_off_pilot_stops_within_the_window
     assert throttle.failsafe_events == 1
 
 
+class SameChannel:
+    """Donkeycar's ``ThrottleFilter`` pattern, ours: reads a channel and writes the value back to it, unchanged."""
+
+    def run(self, t):
+        return t
+
+
+class LaunchLike:
+    """Donkeycar's ``AiLaunch`` pattern, ours: reads the mode (fresh every tick) and the pilot's throttle, and
+    writes the throttle back to the pilot's channel (unchanged while no launch is active)."""
+
+    def run(self, mode, t):
+        return t
+
+
+class Blend:
+    """Combines the pilot's throttle with a fresh input (the driver's): a new value made from both."""
+
+    def run(self, pilot, user):
+        return None if pilot is None else pilot + 0.0 * (user or 0.0)
+
+
+def _straight():
+    return []
+
+
+def _same_channel():
+    return [(SameChannel(), ["pilot/throttle"], ["pilot/throttle"])]
+
+
+def _launch_like():
+    return [(LaunchLike(), ["user/mode", "pilot/throttle"], ["pilot/throttle"])]
+
+
+def _blend():
+    return [(Blend(), ["pilot/throttle", "user/throttle"], ["pilot/throttle"])]
+
+
+def _donkeycar_throttle_filter():
+    from donkeycar.parts.throttle_filter import ThrottleFilter
+
+    return [(ThrottleFilter(), ["pilot/throttle"], ["pilot/throttle"])]
+
+
+def _donkeycar_ai_launch():
+    from donkeycar.parts.launch import AiLaunch
+
+    return [(AiLaunch(), ["user/mode", "pilot/throttle"], ["pilot/throttle"])]
+
+
+def _ours():
+    return _make_drive_mode("ours")
+
+
+def _template():
+    return _make_drive_mode("donkeycar")
+
+
+_DK = pytest.mark.donkeycar
+#: (the parts between the pilot and the drive mode, each ``(part, inputs, outputs)``, re-publishing the switched-off
+#: pilot's throttle on ``pilot/throttle``; the drive mode, or ``None``: the throttle is that channel)
+_PATHS = [
+    pytest.param(_straight, _ours, id="straight-DriveMode"),
+    pytest.param(_straight, _template, id="straight-template-DriveMode", marks=_DK),
+    pytest.param(_same_channel, _ours, id="same-channel-filter-DriveMode"),
+    pytest.param(_same_channel, _template, id="same-channel-filter-template-DriveMode", marks=_DK),
+    pytest.param(_same_channel, None, id="same-channel-filter-to-the-throttle"),
+    pytest.param(_launch_like, _ours, id="launch-like-DriveMode"),
+    pytest.param(_blend, _ours, id="combined-with-a-fresh-input-DriveMode"),
+    pytest.param(_blend, None, id="combined-with-a-fresh-input-to-the-throttle"),
+    pytest.param(_donkeycar_throttle_filter, _ours, id="donkeycar-ThrottleFilter-DriveMode", marks=_DK),
+    pytest.param(_donkeycar_throttle_filter, _template, id="donkeycar-ThrottleFilter-template-DriveMode", marks=_DK),
+    pytest.param(_donkeycar_ai_launch, _ours, id="donkeycar-AiLaunch-DriveMode", marks=_DK),
+    pytest.param(_donkeycar_ai_launch, _template, id="donkeycar-AiLaunch-template-DriveMode", marks=_DK),
+]
+
+
+@pytest.mark.parametrize(("middle", "drive_mode"), _PATHS)
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_switched_off_pilots_throttle_passed_on_in_local_mode_stops_within_the_window(middle, drive_mode):
+    """Mode ``local`` throughout; the pilot runs on ticks 0-9, then its own switch turns it off, and its last
+    throttle is passed on every tick: straight into the drive mode, through a filter writing back to the same
+    channel (Donkeycar's ``ThrottleFilter``, ``AiLaunch``), or combined with the driver's fresh throttle. Each
+    re-publication is as old as the pilot's last command, so the throttle stops one window after it."""
+    rig = Rig(asyncio.get_running_loop().time)
+    v = Vehicle()
+    v.add(Seq([1]), outputs=["cam/image_array"])
+    v.add(Seq(["local"]), outputs=["user/mode"])
+    v.add(Seq([(0.1, 0.5)]), outputs=["user/angle", "user/throttle"])
+    v.add(Switch(10), outputs=["pilot/on"])
+    v.add(Pilot(), inputs=["cam/image_array"], outputs=["pilot/angle", "pilot/throttle"], run_condition="pilot/on")
+    for part, ins, outs in middle():
+        v.add(part, inputs=ins, outputs=outs)
+    if drive_mode is None:
+        v.add(SameChannel(), inputs=["pilot/throttle"], outputs=["throttle"])
+    else:
+        v.add(
+            drive_mode(),
+            inputs=["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
+            outputs=["angle", "throttle"],
+        )
+    throttle = rig.throttle()
+    v.add(throttle, inputs=["throttle", "throttle@age"], name="throttle")
+    ages = Record()
+    v.add(ages, inputs=["throttle@age"])
+    await v.run(RATE, 40)
+    rig.close()
+    last_run = 9 * PERIOD  # the pilot's last command: sensed at 0.45 s
+    assert [a[0] for a in ages.seen] == pytest.approx([max(0.0, k * PERIOD - last_run) for k in range(40)])
+    assert rig.pca.first_time(HALF, 0.0) == 0.0
+    assert rig.pca.pulse_at(last_run + WINDOW - 0.01) == HALF
+    assert rig.pca.first_time(NEUTRAL, PERIOD) == pytest.approx(last_run + WINDOW)  # 0.70 s
+    assert rig.pca.pulse_at(39 * PERIOD) == NEUTRAL
+    assert throttle.failsafe_events == 1
+
+
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
 async def test_a_pipelined_pass_through_after_a_switched_off_pilot_keeps_its_age():
@@ -198,8 +315,11 @@ async def test_an_array_written_into_in_place_is_as_old_as_what_was_written_into
     await v.run(RATE, 31)
     assert v.mem["cam/fused"] is v.mem["cam/image_array"]
     assert list(v.mem["cam/fused"]) == [3.0] * 4
-    assert ages.seen[-1][:2] == pytest.approx((1.5, 0.0) if stale == "frame" else (0.0, 1.5))
-    assert ages.seen[-1][2] == pytest.approx(1.5)  # the 1.5 s old data is in it, whichever array it went into
+    assert ages.seen[-1][1] == pytest.approx(0.0 if stale == "frame" else 1.5)
+    # the 1.5 s old data is in the fused array, whichever input it came from, and so in the camera's channel,
+    # which holds that same array
+    assert ages.seen[-1][0] == pytest.approx(1.5)
+    assert ages.seen[-1][2] == pytest.approx(1.5)
 
 
 class Gear(enum.Enum):
@@ -220,10 +340,13 @@ _VALUES = {
 }
 
 
+@pytest.mark.parametrize("declared", [False, True], ids=["undeclared", "declared"])
 @pytest.mark.parametrize(("value", "immutable"), list(_VALUES.values()), ids=list(_VALUES))
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
-async def test_a_selector_passing_an_input_through_keeps_its_age_only_if_the_value_cannot_change(value, immutable):
+async def test_a_part_passing_an_input_through_is_dated_by_its_declaration_or_the_oldest_input(
+    value, immutable, declared
+):
     class Old:
         def run(self):
             return 1.0 + 0.0
@@ -235,16 +358,24 @@ async def test_a_selector_passing_an_input_through_keeps_its_age_only_if_the_val
         def run(self, fresh, old):
             return fresh
 
+    class DeclaredPick(Pick):
+        def output_sources(self, fresh, old):
+            return (0,)
+
     ages = Record()
     v = Vehicle()
     v.add(Seq([value]), outputs=["fresh"])
     v.add(Old(), outputs=["old"])
-    v.add(Pick(), inputs=["fresh", "old"], outputs=["picked"])
-    v.add(ages, inputs=["picked@age"])
+    v.add(DeclaredPick() if declared else Pick(), inputs=["fresh", "old"], outputs=["picked"])
+    v.add(ages, inputs=["picked@age", "fresh@age"])
     await v.run(RATE, 5)
     assert v.mem["picked"] is value
-    # an immutable value is the fresh input's, unchanged; a mutable one may hold the old input's data
-    assert ages.seen[-1][0] == (0.0 if immutable else pytest.approx(4 * PERIOD))
+    old = pytest.approx(4 * PERIOD)
+    # declared: the fresh input's value, its age; not declared: nothing says which input it is, the oldest
+    assert ages.seen[-1][0] == (0.0 if declared else old)
+    # a mutable object returned as it is by an undeclared part may have had the old data written into it: the
+    # fresh channel, which holds that object, is as old as it
+    assert ages.seen[-1][1] == (0.0 if declared or immutable else old)
 
 
 # ------------------------------------------------------------------------ the property: random graphs

@@ -95,52 +95,119 @@ async def test_outputs_inherit_the_oldest_input_and_sources_are_sensed_when_they
     assert [a[1] for a in ages.seen] == pytest.approx([0.0, 0.05, 0.10])
 
 
+class _Old:
+    """A source sensed at the start and never since (it states so)."""
+
+    def run(self):
+        return tuple([1])
+
+    def output_origin(self):
+        return 0.0
+
+
+class _Pick:
+    """Passes ``fresh`` through as one output and ``old`` as the other, or makes a new value from both."""
+
+    def __init__(self, pass_through: bool = True) -> None:
+        self.pass_through = pass_through
+
+    def run(self, fresh, old):
+        return (fresh if self.pass_through else (fresh[0] + old[0],)), old
+
+
+class _DeclaredPick(_Pick):
+    def output_sources(self, fresh, old):
+        return (0 if self.pass_through else (0, 1)), 1
+
+
+@pytest.mark.parametrize("pass_through", [True, False])
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
-async def test_an_output_that_is_an_input_keeps_that_inputs_origin():
-    class Old:
-        def run(self):
-            return tuple([1])  # a fresh (immutable) object each tick; a list is the in-place case (test_age_rule)
-
-        def output_origin(self):
-            return 0.0
-
-    class Pick:
-        def __init__(self):
-            self.pass_through = True
-
-        def run(self, fresh, old):
-            return (fresh if self.pass_through else (fresh[0] + old[0],)), old
-
+async def test_a_declared_selectors_outputs_have_the_origin_of_the_inputs_it_declares(pass_through):
     ages = Record()
     v = Vehicle()
     v.add(Seq([(7,)]), outputs=["fresh"])
-    v.add(Old(), outputs=["old"])
-    v.add(Pick(), inputs=["fresh", "old"], outputs=["a", "b"])
+    v.add(_Old(), outputs=["old"])
+    v.add(_DeclaredPick(pass_through), inputs=["fresh", "old"], outputs=["a", "b"])
     v.add(ages, inputs=["a@age", "b@age"])
     await v.run(RATE, 3)
     t = [k * PERIOD for k in range(3)]
-    assert [x[0] for x in ages.seen] == [0.0, 0.0, 0.0]  # passed through: the fresh input's age
-    assert [x[1] for x in ages.seen] == pytest.approx(t)  # passed through: the old input's age
+    # declared passed through: the fresh input's age; declared made from both: the older one's
+    assert [x[0] for x in ages.seen] == ([0.0, 0.0, 0.0] if pass_through else pytest.approx(t))
+    assert [x[1] for x in ages.seen] == pytest.approx(t)  # the old input's age
 
 
 @pytest.mark.asyncio
 @pytest.mark.virtual_clock
-async def test_never_written_and_skipped_inputs_do_not_count():
+async def test_an_undeclared_part_passing_an_input_through_gets_the_oldest_origin():
+    ages = Record()
+    v = Vehicle()
+    v.add(Seq([(7,)]), outputs=["fresh"])
+    v.add(_Old(), outputs=["old"])
+    v.add(_Pick(), inputs=["fresh", "old"], outputs=["a", "b"])
+    v.add(ages, inputs=["fresh@age", "a@age", "b@age"])
+    await v.run(RATE, 3)
+    t = [k * PERIOD for k in range(3)]
+    assert [x[0] for x in ages.seen] == [0.0, 0.0, 0.0]  # an immutable value: its own channel is untouched
+    assert [x[1] for x in ages.seen] == pytest.approx(t)  # nothing says which input it is: the oldest
+    assert [x[2] for x in ages.seen] == pytest.approx(t)
+
+
+@pytest.mark.parametrize(
+    ("declaration", "message"),
+    [
+        ((0,), "1 entries for 2 outputs"),
+        ((0, 2), "with 2 not an input index"),
+        ((0, "old"), "with 'old' not an input index"),
+        (None, "not a sequence"),
+    ],
+)
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_a_declaration_that_does_not_fit_the_part_fails_its_call_naming_it(declaration, message):
+    class Wrong(_Pick):
+        def output_sources(self, fresh, old):
+            return declaration
+
+    v = Vehicle()
+    v.add(Seq([(7,)]), outputs=["fresh"])
+    v.add(_Old(), outputs=["old"])
+    v.add(Wrong(), inputs=["fresh", "old"], outputs=["a", "b"], name="pick")
+    with pytest.raises(Exception, match=rf"pick.*output_sources\(\) returned .*{message}"):
+        await v.run(RATE, 3)
+    assert "a" not in v.mem  # nothing of that call was stored
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_never_written_inputs_do_not_count_and_skipped_ones_do():
     class Mix:
         def run(self, user, pilot, nothing):
-            return (user or 0.0) + (pilot or 0.0) + 0.0  # a new object: inherits
+            return (user or 0.0) + (pilot or 0.0) + 0.0
+
+    class OnOnce:
+        def __init__(self):
+            self.k = 0
+
+        def run(self):
+            self.k += 1
+            return self.k == 1
 
     ages = Record()
     v = Vehicle()
-    v.mem.set("pilot_on", False)
+    v.mem.set("never_on", False)
     v.add(Seq([0.3]), outputs=["user"])
-    v.add(Seq([0.9]), outputs=["pilot"], run_condition="pilot_on")
+    v.add(Seq([0.9]), outputs=["pilot"], run_condition="never_on")
+    v.add(OnOnce(), outputs=["once_on"])
+    v.add(Seq([0.9]), outputs=["pilot_once"], run_condition="once_on")
     v.add(Mix(), inputs=["user", "pilot", "nothing"], outputs=["cmd"])
-    v.add(ages, inputs=["cmd@age", "pilot@age"])
+    v.add(Mix(), inputs=["user", "pilot_once", "nothing"], outputs=["cmd_once"])
+    v.add(ages, inputs=["cmd@age", "pilot@age", "cmd_once@age"])
     await v.run(RATE, 3)
-    assert [a[0] for a in ages.seen] == [0.0, 0.0, 0.0]
+    assert [a[0] for a in ages.seen] == [0.0, 0.0, 0.0]  # nothing sensed behind the pilot's and nothing's
     assert all(math.isinf(a[1]) for a in ages.seen)
+    # a producer skipped after it ran once: its value, sensed at 0, is in every later command
+    assert [a[2] for a in ages.seen] == pytest.approx([0.0, 0.05, 0.10])
 
 
 def test_memory_set_and_age_use_the_origin():

@@ -89,6 +89,11 @@ class PilotCondition:
         return normalise_mode(mode, "PilotCondition") != USER
 
 
+#: ``DriveMode.output_sources``: for each mode, the index of the input (mode, user angle, user throttle, pilot
+#: angle, pilot throttle) each output (angle, throttle) is passed on from
+_SOURCES: Final = {USER: (1, 2), LOCAL_ANGLE: (3, 2), LOCAL: (3, 4)}
+
+
 class DriveMode:
     """Choose the command the actuators get, from the mode.
 
@@ -97,7 +102,9 @@ class DriveMode:
     * ``local``: pilot angle, pilot throttle times ``ai_throttle_mult``.
 
     A pilot value that is ``None`` (the pilot has not produced one yet) or NaN is 0.0, as in Donkeycar; a user
-    value that is ``None`` passes through as ``None``, which the actuators treat as neutral.
+    value that is ``None`` passes through as ``None``, which the actuators treat as neutral. It declares which
+    input each output came from (:meth:`output_sources`), so each command is as old as the input it was chosen
+    from (``docs/provenance.md``).
     """
 
     def __init__(self, ai_throttle_mult: float = 1.0) -> None:
@@ -120,6 +127,13 @@ class DriveMode:
         if m == LOCAL_ANGLE:
             return _command(pilot_angle), user_throttle
         return _command(pilot_angle), _command(pilot_throttle) * self.ai_throttle_mult
+
+    def output_sources(self, mode: object, *_: object) -> tuple[int, int]:
+        """Which input each output came from (``asyncdonkey.selectors``): the driver's command is dated by the
+        driver's input, the pilot's by the pilot's, so a stale pilot does not cut a driver in ``user`` mode and a
+        fresh gamepad does not hide a silent pilot in ``local`` mode. A ``0.0`` put in for a pilot value that is
+        missing is dated by that pilot input (none if it was never written: no age to drive on)."""
+        return _SOURCES[normalise_mode(mode, "DriveMode")]
 
 
 class AutoRecordOnThrottle:

@@ -72,6 +72,9 @@ class Vehicle:
 
     #: a sync part holding the loop thread longer than this is named in a warning when it returns
     block_report_s = 0.25
+    #: with :meth:`run_with_signals` (``asyncdonkey run``, :meth:`start`): how long after SIGINT/SIGTERM/SIGHUP the
+    #: car may go without running its signal handler (C code holding the GIL) before its safety process ends it
+    exit_grace_s: float = 2.0
     #: checked mode for vehicles that do not say (``checked=None``): off on the car and, unless they ask, in tests;
     #: asyncdonkey's pytest plugin turns it on for a project (``asyncdonkey_checked = true`` in its pytest ini) or a
     #: test (``@pytest.mark.asyncdonkey_checked``)
@@ -109,6 +112,8 @@ class Vehicle:
         self._drive: Drive | None = None
         self._pending_stop: str | None = None
         self._offload = make_offload(self._executor_for_offload)
+        #: the exit grace the safety process enforces, while run_with_signals has the signals (else None)
+        self._signal_exit_grace: float | None = None
         note_vehicle(self)  # a build() that raises after making it: `asyncdonkey run` shuts its parts down
 
     @property
@@ -372,13 +377,15 @@ class Vehicle:
         want = self.safety_process
         if want is False or drive.clock.is_virtual:
             return None
+        from .parts.actuators import PWMThrottle  # here: the actuators import the core
+
         outputs: list[GuardedOutput] = []
         windows: list[float | None] = []
         for e in drive.entries:
             routed = getattr(e.part, "safety_route", None) if e.actuator else None
             route = routed() if callable(routed) else None
             if route is not None:
-                outputs.append(GuardedOutput(e.name, route, e.part))
+                outputs.append(GuardedOutput(e.name, route, e.part, stops_motion=isinstance(e.part, PWMThrottle)))
                 windows.append(getattr(e.part, "failsafe_age_s", None))
         if not outputs:
             if want:
@@ -387,7 +394,7 @@ class Vehicle:
                     "channel given by pin spec or PWMChannel)"
                 )
             return None
-        guard = SafetyProcess(outputs, heartbeat_timeout_for(windows, rate_hz))
+        guard = SafetyProcess(outputs, heartbeat_timeout_for(windows, rate_hz), self._signal_exit_grace)
         try:
             await asyncio.get_running_loop().run_in_executor(None, guard.start)
         except (SafetyProcessError, OSError) as exc:
@@ -396,6 +403,9 @@ class Vehicle:
                 raise SafetyProcessError(str(exc)) from exc
             logger.error("%s; driving with the in-process watchdog only", exc)
             return None
+        if self._signal_exit_grace is not None:
+            guard.watch_signals()  # our signal handlers are installed: the guard hears the signals too
+        guard.stop_drive = drive.request_stop
         return guard
 
     def _attach_actuators(self, drive: Drive) -> None:
@@ -422,6 +432,8 @@ class Vehicle:
             else:
                 r.latency = _run_end_latency(record, self.mem.origins, e)
         if drive.watchdog is not None:
+            if guard is not None:
+                drive.watchdog.monitor = guard.check  # the car watches its guard from the watchdog thread
             drive.watchdog.start()
 
     def _detach_actuators(self, drive: Drive) -> None:
@@ -486,11 +498,13 @@ class Vehicle:
             )
         sp = report.safety_process
         if sp is not None:
+            lost = sp.get("lost", 0)
+            lost_row = f"; lost {lost} times ({sp['lost_why'][-1]}), restarted {sp.get('restarts', 0)}" if lost else ""
             rows.append(
                 (
                     "safety process",
                     f"guarded {', '.join(sp['outputs'])}; {sp['events']} safe-state events, "
-                    f"{sp['failed_attempts']} failed writes retried",
+                    f"{sp['failed_attempts']} failed writes retried{lost_row}",
                 )
             )
         if report.shutdown_abandoned:
@@ -517,25 +531,46 @@ class Vehicle:
         duration: float | None = None,
         use_uvloop: bool = True,
         precise: bool = False,
+        exit_grace_s: float | None = None,
     ) -> tuple[int, float]:
         """Donkeycar's blocking entry point: drive on a new event loop and return ``(loops, seconds)``.
 
         Runs on uvloop when it is installed (unless ``use_uvloop=False``). The first Ctrl-C or SIGTERM stops the
         car (the tick finishes, actuators go to their safe state, every part is shut down, the report is
-        logged) within a bounded time even if a part hangs; a second one exits at once with status 130.
+        logged) within a bounded time even if a part hangs; a second one exits at once with status 130. A car
+        that cannot run its signal handler (C code holding the GIL) is ended by its safety process
+        ``exit_grace_s`` after the signal (:meth:`run_with_signals`).
         """
         report = run_blocking(
-            self.run_with_signals(rate_hz, max_loop_count, duration=duration, verbose=verbose, precise=precise),
+            self.run_with_signals(
+                rate_hz, max_loop_count, duration=duration, verbose=verbose, precise=precise, exit_grace_s=exit_grace_s
+            ),
             use_uvloop=use_uvloop,
         )
         return report.loops, report.elapsed_s
 
     async def run_with_signals(
-        self, rate_hz: float = 20, max_loop_count: int | None = None, **kwargs: Any
+        self,
+        rate_hz: float = 20,
+        max_loop_count: int | None = None,
+        *,
+        exit_grace_s: float | None = None,
+        **kwargs: Any,
     ) -> DriveReport:
-        """:meth:`run` with SIGINT and SIGTERM bound to the two-step stop (``asyncdonkey.signals``)."""
-        with stop_on_signals(self, self.shutdown_deadline_s()):
-            return await self.run(rate_hz, max_loop_count, **kwargs)
+        """:meth:`run` with SIGINT, SIGTERM and SIGHUP bound to the two-step stop (``asyncdonkey.signals``).
+
+        With a safety process, the signals reach it too, and a car that has not run its signal handler within
+        ``exit_grace_s`` (default :attr:`exit_grace_s`, 2 s) of one, or has not ended by the bound its handler set
+        (the stop grace plus the shutdown deadline), is ended by it: safe state, one line, SIGKILL."""
+        grace = self.exit_grace_s if exit_grace_s is None else exit_grace_s
+        if not (isinstance(grace, int | float) and grace > 0):
+            raise ValueError(f"Vehicle.run_with_signals: exit_grace_s must be a positive number, got {grace!r}")
+        self._signal_exit_grace = float(grace)
+        try:
+            with stop_on_signals(self, self.shutdown_deadline_s()):
+                return await self.run(rate_hz, max_loop_count, **kwargs)
+        finally:
+            self._signal_exit_grace = None
 
 
 def _check_run_args(rate_hz: Any, max_loop_count: Any, duration: Any, stop_grace_s: Any, checked: Any) -> None:

@@ -1,4 +1,4 @@
-"""Ctrl-C and SIGTERM on a car: the first stops the drive within a bounded time, the second exits at once.
+"""Ctrl-C, SIGTERM and SIGHUP on a car: the first stops the drive within a bounded time, the second exits at once.
 
 Why not ``loop.add_signal_handler``: asyncio runs such a handler from the event loop, so while a sync part
 holds the loop thread (a hung camera read, a ``time.sleep``) the handler does not run, and neither Ctrl-C nor
@@ -12,6 +12,17 @@ main thread between two bytecodes, even inside that part. So:
    process puts every actuator in its safe state and exits with status 130.
 2. **Second signal**: every actuator is put in its safe state from the signal handler, and the process exits
    at once with status 130 (the shell's "terminated by Ctrl-C"), whatever is still running.
+
+SIGHUP (the terminal or SSH session that started the car went away) is a stop like SIGTERM: the drive ends
+with its report, instead of the process dying on the spot with the throttle left to the safety process.
+
+All of this needs the main thread to run Python. While C code holds the GIL (a catastrophic regular expression,
+a native call that never releases it) no Python handler runs, not even the second one. The safety process covers
+that: the interpreter's wakeup descriptor is a pipe it reads (:meth:`SafetyProcess.watch_signals`), so it sees
+the signal from the C-level handler at once, and the first handler to run publishes the time by which the drive
+will have ended (the stop grace plus the shutdown deadline, plus ``EXIT_MARGIN_S``). A car that has not run its
+handler within its exit grace (``Vehicle.exit_grace_s``, 2 s) of the signal, or not ended by the time it
+published, is ended by the safety process: every output safe, one line saying why, SIGKILL.
 
 Only the command line and :meth:`Vehicle.start` / :meth:`Vehicle.run_with_signals` install this; a drive
 embedded in someone's asyncio application with :meth:`Vehicle.run` leaves signals to the application.
@@ -39,6 +50,10 @@ __all__ = ["EXIT_INTERRUPTED", "PartInterrupted", "force_safe_exit", "stop_on_si
 logger = logging.getLogger("asyncdonkey.loop")
 
 EXIT_INTERRUPTED = 130
+#: the signals that stop a drive
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: beyond the drive's own bound (stop grace + shutdown deadline), before the safety process ends the car
+EXIT_MARGIN_S = 1.0
 
 
 def force_safe_exit(drive: LoopActivity | None, status: int = EXIT_INTERRUPTED, why: str = "") -> None:
@@ -86,6 +101,10 @@ class _SignalStop:
         name = signal.Signals(signum).name
         if self.count > 1:
             force_safe_exit(drive, EXIT_INTERRUPTED, f"second {name}")
+        guard = getattr(drive, "guard", None)
+        if guard is not None:  # the safety process ends the car if it has not ended by then
+            grace = drive.stop_grace_s if drive is not None else 1.0
+            guard.exit_requested(time.monotonic() + grace + self.shutdown_deadline_s + EXIT_MARGIN_S)
         logger.info("received %s: stopping (again to exit at once)", name)
         self.vehicle.stop(name)
         threading.Thread(target=self._enforce, args=(drive,), name="asyncdonkey-stop", daemon=True).start()
@@ -112,13 +131,13 @@ class _SignalStop:
 
 @contextmanager
 def stop_on_signals(vehicle: Stoppable, shutdown_deadline_s: float) -> Iterator[None]:
-    """Bind SIGINT and SIGTERM to the two-step stop for the duration (main thread only; else does nothing)."""
+    """Bind SIGINT, SIGTERM and SIGHUP to the two-step stop for the duration (main thread only; else does nothing)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     stopper = _SignalStop(vehicle, shutdown_deadline_s)
     previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         try:
             previous[sig] = signal.signal(sig, stopper.handler)
         except (ValueError, OSError):  # not the main interpreter, or the platform refuses

@@ -13,16 +13,28 @@ GIL shared, and owns its own handle on each actuator's bus. It writes an actuato
 
 and keeps it: while tripped it reads the output back now and then and writes the safe state again if a stale
 write from the car landed after it, until the car resumes with a fresh command. A safe-state write that fails
-(a NACK, a bus error) is retried with a bounded backoff until it lands, each attempt counted.
+(a NACK, a bus error) is retried with a bounded backoff until it lands, each attempt counted. Outputs are served
+in turn, the throttle first: one output's retries never hold back another's first write.
+
+It also ends a car that cannot end itself. The car's signal handling points the interpreter's wakeup descriptor
+(``signal.set_wakeup_fd``) at a pipe this process reads, so a SIGINT, SIGTERM or SIGHUP reaches the guard from the
+C-level handler at once, even while C code holds the car's GIL and no Python handler can run. When the car's
+Python handler runs, it publishes the time by which it will have ended (its stop grace plus its shutdown
+deadline). If the car has not ended by then, or has not run its handler within the exit grace of the signal,
+the guard writes every safe state, says why in one line, and kills the car with SIGKILL.
+
+The car watches the guard in turn: the guard stores its own heartbeat (``guard_beat``) on every pass of its loop
+(at least every ``POLL_S``), which the car's watchdog thread checks (:mod:`asyncdonkey.safety.process`).
 
 It imports only the standard library and smbus2 (a test's served I2C simulator is imported only when a route
 names one), so it starts in tens of milliseconds and holds a few MB. It is started as a script by path
 (``python -I guard.py``) with the car's shared state passed as an inherited memory file descriptor; the same
 file is also the ``asyncdonkey.safety.guard`` module, which the car imports for the shared layout.
 
-The shared state is a small memory-mapped file: a header (the heartbeat and the drive's phase, and the total
+The shared state is a small memory-mapped file: a header (the heartbeat and the drive's phase, the total
 of the guard's safe writes, which the car checks once a tick to rewrite its outputs after the guard touched
-them) and one slot per actuator (the command deadline and a command count from the car; the guard's counts,
+them, the guard's own heartbeat, and the time by which a car asked to stop will have ended) and one slot per
+actuator (the command deadline and a command count from the car; the guard's counts,
 unsafe times and its latest event from the guard). Each field has one writer, and each is one aligned 8-byte
 store, so neither side ever waits for the other.
 """
@@ -43,7 +55,7 @@ from typing import Any
 __all__ = ["HEADER_SIZE", "PHASE_ENDING", "PHASE_STARTING", "PHASE_TICKING", "SLOT_SIZE", "SharedState"]
 
 MAGIC = b"ADSG"
-VERSION = 1
+VERSION = 2
 HEADER_SIZE = 64
 SLOT_SIZE = 128
 #: the drive has not ticked yet: no heartbeat to watch
@@ -58,6 +70,8 @@ _H_MAGIC = 0  # 4s + u32 version
 _H_HEARTBEAT = 8  # f64, car: monotonic time of the latest tick
 _H_PHASE = 16  # u64, car
 _H_WRITES = 24  # u64, guard: safe writes landed, all slots
+_H_GUARD_BEAT = 32  # f64, guard: monotonic time of its latest pass (the car checks it is alive)
+_H_EXIT_BY = 40  # f64, car: a stop was asked for, and the car will have ended by then (inf: none asked)
 # slot fields (offsets within a slot)
 _S_DEADLINE = 0  # f64, car: when the current command goes stale (inf: no failsafe)
 _S_SEQ = 8  # u64, car: commands applied
@@ -67,7 +81,8 @@ _S_EVENTS = 32  # u64, guard: times tripped
 _S_UNSAFE_TOTAL = 40  # f64, guard: seconds from the trip's cause to its safe write landing, summed
 _S_UNSAFE_MAX = 48  # f64, guard
 _S_LAST_CAUSE = 56  # f64, guard: the deadline (or heartbeat timeout) of the latest trip
-_S_LAST_LANDED = 64  # f64, guard: when its safe write landed (nan until it has)
+_S_LAST_LANDED = 64  # f64, guard: when its safe write landed, while it holds the output safe (else nan)
+_S_TRIP_DEADLINE = 72  # f64, guard: the command deadline in force when it tripped (inf: none)
 
 _D = struct.Struct("<d")
 _Q = struct.Struct("<Q")
@@ -98,10 +113,13 @@ class SharedState:
         os.ftruncate(fd, size)
         state = cls(mmap.mmap(fd, size), slots)
         state.buf[_H_MAGIC : _H_MAGIC + 8] = MAGIC + struct.pack("<I", VERSION)
+        _D.pack_into(state.buf, _H_EXIT_BY, math.inf)
+        _D.pack_into(state.buf, _H_GUARD_BEAT, -math.inf)
         for i in range(slots):
             state._set_d(i, _S_DEADLINE, math.inf)
             state._set_d(i, _S_LAST_CAUSE, math.nan)
             state._set_d(i, _S_LAST_LANDED, math.nan)
+            state._set_d(i, _S_TRIP_DEADLINE, math.nan)
         return state, fd
 
     @classmethod
@@ -157,6 +175,14 @@ class SharedState:
     def set_phase(self, phase: int) -> None:
         _Q.pack_into(self.buf, _H_PHASE, phase)
 
+    def set_exit_by(self, t: float) -> None:
+        """A stop was asked for: the car will have ended by ``t`` (monotonic), or the guard ends it."""
+        _D.pack_into(self.buf, _H_EXIT_BY, t)
+
+    def guard_beat(self) -> float:
+        """The guard's latest pass (monotonic; ``-inf`` before its first)."""
+        return float(_D.unpack_from(self.buf, _H_GUARD_BEAT)[0])
+
     # guard side
     def heartbeat(self) -> float:
         return float(_D.unpack_from(self.buf, _H_HEARTBEAT)[0])
@@ -173,6 +199,12 @@ class SharedState:
     def writes_total(self) -> int:
         return int(_Q.unpack_from(self.buf, _H_WRITES)[0])
 
+    def exit_by(self) -> float:
+        return float(_D.unpack_from(self.buf, _H_EXIT_BY)[0])
+
+    def set_guard_beat(self, t: float) -> None:
+        _D.pack_into(self.buf, _H_GUARD_BEAT, t)
+
     def guard_stats(self, slot: int) -> dict[str, float]:
         """What the guard did for one slot (read by the car for its report)."""
         return {
@@ -184,8 +216,10 @@ class SharedState:
         }
 
     def last_event(self, slot: int) -> tuple[float, float]:
-        """``(cause, landed)`` of the guard's latest trip of this slot (nan where there is none yet)."""
-        return self._get_d(slot, _S_LAST_CAUSE), self._get_d(slot, _S_LAST_LANDED)
+        """``(deadline, landed)`` of the guard's trip of this slot: the command deadline in force when it tripped
+        (whatever the trip's cause, the deadline or the heartbeat) and when its latest safe write of that trip
+        landed, while the trip lasts (nan before it has landed, and once the guard has let go)."""
+        return self._get_d(slot, _S_TRIP_DEADLINE), self._get_d(slot, _S_LAST_LANDED)
 
 
 # ------------------------------------------------------------------------------------- the outputs
@@ -243,7 +277,8 @@ def open_smbus(spec: dict[str, Any]) -> Any:
 
 # ------------------------------------------------------------------------------------------ the guard
 
-#: the longest the guard sleeps: a deadline can move earlier without telling it (a command with an older origin)
+#: the longest the guard sleeps: a deadline can move earlier without telling it (a command with an older origin);
+#: it is also the period of the guard's own heartbeat, which the car checks
 POLL_S = 0.02
 #: how often a tripped output is read back, to catch a stale write from the car that landed after the safe one
 VERIFY_S = 0.1
@@ -252,6 +287,10 @@ RETRY_FIRST_S = 0.002
 RETRY_MAX_S = 0.05
 #: after the car is gone: how long to keep retrying a safe write that will not land before giving up
 ORPHAN_RETRY_S = 30.0
+#: at the drive's normal end: how long the last safe writes may take before the guard answers the car
+STOP_RETRY_S = 0.5
+#: the signals that ask the car to stop (their numbers arrive on the wakeup pipe)
+STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 
 
 class _Slot:
@@ -268,14 +307,27 @@ class _Slot:
         self.next_verify = math.inf
 
 
-class Guard:
-    """The guard's state and decisions; :func:`main` runs it."""
+def _backoff(failed: int) -> float:
+    return float(min(RETRY_FIRST_S * 2 ** (failed - 1), RETRY_MAX_S))
 
-    def __init__(self, state: SharedState, outputs: list[Output], heartbeat_timeout_s: float) -> None:
+
+class Guard:
+    """The guard's state and decisions; :func:`main` runs it.
+
+    ``first`` lists the slots to serve first (the throttle: what moves the car); every pass serves them, then
+    the others, each one attempt at a time, so a NACKing output's retries never hold back another's write."""
+
+    def __init__(
+        self, state: SharedState, outputs: list[Output], heartbeat_timeout_s: float, first: tuple[int, ...] = ()
+    ) -> None:
         self.state = state
         self.slots = [_Slot(o) for o in outputs]
+        self.order = [i for i in first if 0 <= i < len(outputs)]
+        self.order += [i for i in range(len(outputs)) if i not in self.order]
         self.heartbeat_timeout_s = heartbeat_timeout_s
-        self.writes_total = 0
+        self.writes_total = state.writes_total()  # a restarted guard counts on from its predecessor
+        for i in range(len(outputs)):  # and holds nothing safe yet, whatever its predecessor held
+            state._set_d(i, _S_LAST_LANDED, math.nan)
         self._log_at: dict[str, float] = {}
 
     def log(self, key: str, msg: str, every_s: float = 1.0) -> None:
@@ -296,26 +348,29 @@ class Guard:
         return cause
 
     def step(self, now: float) -> float:
-        """Check every slot and act; returns when to look again."""
+        """Check every slot (the first ones first) and act; returns when to look again."""
         wake = now + POLL_S
         st = self.state
-        for i, s in enumerate(self.slots):
+        st.set_guard_beat(now)
+        for i in self.order:
+            s = self.slots[i]
             cause = self._cause(i, now)
             if cause is None:
-                if s.tripped and (st.seq(i) != s.seq_at_trip or st.deadline(i) == math.inf):
-                    s.tripped = s.pending = False  # the car is back with a fresh command (or has no deadline)
+                if s.tripped:
+                    # its deadline is in the future again (a fresh command) and the loop ticks: the car has it
+                    s.tripped = s.pending = False
                     s.next_verify = math.inf
-                    continue
-                if not s.tripped:
-                    deadline = st.deadline(i)
-                    if deadline < wake:
-                        wake = deadline
-                    continue
-            elif not s.tripped:
+                    st._set_d(i, _S_LAST_LANDED, math.nan)  # no longer holding it safe
+                deadline = st.deadline(i)
+                if deadline < wake:
+                    wake = deadline
+                continue
+            if not s.tripped:
                 s.tripped = s.pending = True
                 s.cause, s.seq_at_trip, s.failed, s.next_attempt = cause, st.seq(i), 0, now
                 st._set_q(i, _S_EVENTS, st._get_q(i, _S_EVENTS) + 1)
                 st._set_d(i, _S_LAST_CAUSE, cause)
+                st._set_d(i, _S_TRIP_DEADLINE, st.deadline(i))
                 st._set_d(i, _S_LAST_LANDED, math.nan)
             if s.pending and now >= s.next_attempt:
                 self._attempt(i, s, now)
@@ -333,7 +388,7 @@ class Guard:
         except OSError as exc:
             s.failed += 1
             st._set_q(i, _S_FAILED, st._get_q(i, _S_FAILED) + 1)
-            s.next_attempt = time.monotonic() + min(RETRY_FIRST_S * 2 ** (s.failed - 1), RETRY_MAX_S)
+            s.next_attempt = time.monotonic() + _backoff(s.failed)
             self.log(f"fail{i}", f"{s.out.name}: safe-state write failed (attempt {s.failed}), retrying: {exc}")
             return
         landed = time.monotonic()
@@ -361,27 +416,135 @@ class Guard:
             s.pending, s.failed, s.next_attempt = True, 0, now
             self._attempt(i, s, now)
 
-    def all_safe(self, give_up_s: float) -> None:
-        """The car is gone or done: every output to its safe state, each retried until it lands or ``give_up_s``."""
-        until = time.monotonic() + give_up_s
-        for i, s in enumerate(self.slots):
-            attempt = 0
-            while True:
+    def all_safe(self, give_up_s: float, why: str, quiet: bool = False) -> bool:
+        """Every output to its safe state at once: the first ones first, then each still failing retried in turn
+        on its own backoff, until all have landed or ``give_up_s`` has passed. Says in one line what is safe
+        and what is not (and why) after the first round if any failed, and in one line how it ended. Returns
+        whether every output is safe. ``quiet``: no line when every output landed at its first attempt."""
+        st = self.state
+        start = time.monotonic()
+        until = start + give_up_s
+        pending = list(self.order)
+        attempts = dict.fromkeys(pending, 0)
+        next_at = dict.fromkeys(pending, start)
+        errors: dict[int, str] = {}
+        said = False
+        while pending:
+            st.set_guard_beat(time.monotonic())  # alive, for the car: retrying is not being frozen
+            for i in list(pending):
+                if time.monotonic() < next_at[i]:
+                    continue
+                s = self.slots[i]
                 try:
                     s.out.write_safe()
-                    break
                 except OSError as exc:
-                    attempt += 1
-                    self.state._set_q(i, _S_FAILED, self.state._get_q(i, _S_FAILED) + 1)
-                    self.log(f"fail{i}", f"{s.out.name}: safe-state write failed (attempt {attempt}): {exc}")
-                    if time.monotonic() >= until:
-                        self.log(f"gave{i}", f"{s.out.name}: gave up after {attempt} attempts", 0)
-                        break
-                    time.sleep(min(RETRY_FIRST_S * 2 ** (attempt - 1), RETRY_MAX_S))
+                    attempts[i] += 1
+                    errors[i] = f"{exc}"
+                    st._set_q(i, _S_FAILED, st._get_q(i, _S_FAILED) + 1)
+                    next_at[i] = time.monotonic() + _backoff(attempts[i])
+                    continue
+                pending.remove(i)
+                if attempts[i]:
+                    self.log(f"late{i}", f"{s.out.name}: safe state written after {attempts[i] + 1} attempts", 0)
+            if not pending:
+                break
+            if not said:
+                said = True
+                self.log("unsafe", f"{why}: {self._split(pending, errors)}; retrying for up to {give_up_s:g} s", 0)
+            now = time.monotonic()
+            if now >= until:
+                names = ", ".join(f"{self.slots[i].out.name} ({attempts[i]} attempts)" for i in pending)
+                self.log("gave", f"{why}: gave up after {give_up_s:g} s: NOT in its safe state: {names}", 0)
+                return False
+            time.sleep(max(0.0, min(min(next_at[i] for i in pending), until) - now))
+        if not quiet or said:
+            self.log("end", f"{why}: every output written to its safe state", 0)
+        return True
+
+    def _split(self, pending: list[int], errors: dict[int, str]) -> str:
+        safe = [self.slots[i].out.name for i in self.order if i not in pending]
+        bad = "; ".join(f"{self.slots[i].out.name} NOT safe ({errors.get(i, '?')})" for i in pending)
+        return (f"{', '.join(safe)} in its safe state; " if safe else "") + bad
+
+
+class ExitWatch:
+    """When to end a car that was asked to stop and has not ended.
+
+    A stop signal's number arrives on the wakeup pipe from the car's C-level handler (so even while C code
+    holds the car's GIL); the car has ``grace_s`` to run its Python handler, which publishes the time by which
+    it will have ended (``exit_by`` in the shared state: its stop grace plus its shutdown deadline). Past that
+    time, or past the grace without it, the car is ended. Signals after the first change nothing: a car that ran
+    its handler answers a second one itself (it exits at once), and the car's own stop re-delivers SIGINT to
+    interrupt a part that holds its loop."""
+
+    def __init__(self, state: SharedState, grace_s: float | None) -> None:
+        self.state = state
+        self.grace_s = grace_s
+        self.signalled_at = math.inf
+        self.signal_name = ""
+        #: the car has been ended: nothing more to do but see it go
+        self.ended = False
+
+    def signalled(self, data: bytes, now: float) -> None:
+        if self.grace_s is None or math.isfinite(self.signalled_at):
+            return
+        for b in data:
+            try:
+                sig = signal.Signals(b)
+            except ValueError:
+                continue
+            if sig in STOP_SIGNALS:
+                self.signalled_at, self.signal_name = now, sig.name
+                return
+
+    def due(self) -> float:
+        """When to end the car (inf: not asked to stop, or already ended)."""
+        if self.ended:
+            return math.inf
+        exit_by = self.state.exit_by()
+        if math.isfinite(exit_by):  # its handler ran: its own bound
+            return exit_by
+        return self.signalled_at + (self.grace_s or 0.0)
+
+    def why(self, now: float) -> str:
+        if math.isfinite(self.state.exit_by()):
+            if not self.signal_name:
+                return "the car did not end by the bound its own stop set"
+            return f"the car did not end within {now - self.signalled_at:.1f} s of {self.signal_name} (its own bound)"
+        return (
+            f"the car did not exit within {now - self.signalled_at:.1f} s of {self.signal_name} "
+            "(its signal handler never ran: C code holding the GIL?)"
+        )
 
 
 def _car_gone(car_pid: int) -> bool:
     return os.getppid() != car_pid
+
+
+def _open_watch(config: dict[str, Any], car_pid: int) -> tuple[list[int], int | None]:
+    """The descriptors to wait on: stdin (the car's command pipe), the car's pidfd, the signal wakeup pipe."""
+    watch = [sys.stdin.fileno()]
+    if hasattr(os, "pidfd_open"):
+        try:
+            watch.append(os.pidfd_open(car_pid))
+        except OSError:
+            pass
+    sig_fd = config.get("signal_fd")
+    if isinstance(sig_fd, int) and sig_fd >= 0:
+        os.set_blocking(sig_fd, False)
+        watch.append(sig_fd)
+        return watch, sig_fd
+    return watch, None
+
+
+def _end_car(guard: Guard, car_pid: int, why: str) -> None:
+    """The car would not end: every safe state first, one line saying why, then SIGKILL."""
+    guard.all_safe(STOP_RETRY_S, why)
+    guard.log("kill", f"{why}: killing it (SIGKILL, pid {car_pid})", 0)
+    try:
+        os.kill(car_pid, signal.SIGKILL)
+    except OSError as exc:
+        guard.log("kill-failed", f"could not kill the car (pid {car_pid}): {exc}", 0)
 
 
 def main() -> int:
@@ -401,13 +564,12 @@ def main() -> int:
         os.setpriority(os.PRIO_PROCESS, 0, -10)
     except OSError:
         pass
-    guard = Guard(state, outputs, float(config["heartbeat_timeout_s"]))
-    watch = [sys.stdin.fileno()]
-    if hasattr(os, "pidfd_open"):
-        try:
-            watch.append(os.pidfd_open(car_pid))
-        except OSError:
-            pass
+    first = tuple(int(i) for i in config.get("first", ()))
+    guard = Guard(state, outputs, float(config["heartbeat_timeout_s"]), first)
+    grace = config.get("exit_grace_s")
+    exits = ExitWatch(state, None if grace is None else float(grace))
+    watch, sig_fd = _open_watch(config, car_pid)
+    state.set_guard_beat(time.monotonic())
     print("ready", flush=True)
     reason = ""
     while not reason:
@@ -416,20 +578,31 @@ def main() -> int:
         if stopping:
             reason = stopping[0]
             break
+        if now >= exits.due():
+            _end_car(guard, car_pid, exits.why(now))
+            exits.ended = True  # once; the car's pidfd says when it is gone
+        wake = min(wake, exits.due())
         ready, _, _ = select.select(watch, [], [], max(0.0, wake - time.monotonic()))
         for fd in ready:
             if fd == watch[0]:
                 line = sys.stdin.buffer.readline()
                 reason = "stop" if line.strip() == b"stop" else "car gone (its pipe closed)"
+            elif fd == sig_fd:
+                try:
+                    data = os.read(fd, 64)
+                except BlockingIOError:
+                    continue
+                if data:
+                    exits.signalled(data, time.monotonic())
+                else:
+                    watch.remove(fd)  # every writer closed it: the car is going; the pidfd tells when
             else:
                 reason = "car gone (its process ended)"
         if not reason and _car_gone(car_pid):
             reason = "car gone (reparented)"
-    orphaned = reason.startswith("car gone") or reason == "SIGTERM"
-    guard.all_safe(ORPHAN_RETRY_S if orphaned else 2.0)
-    if orphaned:
-        guard.log("end", f"{reason}: every output written to its safe state", 0)
-    else:
+    orphaned = reason != "stop"
+    guard.all_safe(ORPHAN_RETRY_S if orphaned else STOP_RETRY_S, reason, quiet=not orphaned)
+    if not orphaned:
         print(json.dumps({"slots": [state.guard_stats(i) for i in range(len(outputs))]}), flush=True)
     for o in outputs:
         o.close()

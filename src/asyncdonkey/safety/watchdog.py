@@ -17,6 +17,11 @@ logged at most once a second. Giving up would leave the car driving on its last 
 stall lasts; only a fresh command (the output's own writer takes over) or the end of the drive ends the
 retries. The time the output stayed unsafe is measured from the deadline (:mod:`asyncdonkey.safety.unsafe`).
 
+It also watches the safety process (when the drive has one): every ``CHECK_S`` it calls the guard's
+:meth:`~asyncdonkey.safety.process.SafetyProcess.check`, which notices a guard that has exited or frozen and
+answers it (the throttle to its safe state from this thread, a new guard). The event loop has no part in it, so a
+blocked loop does not hide a lost guard.
+
 What it cannot do: it lives in the car's process. C code that holds the GIL freezes it with the rest, enough
 busy Python threads can starve it past its window, and a process killed with SIGKILL runs no code at all, while
 a PCA9685 keeps outputting its last pulse. The safety process (:mod:`asyncdonkey.safety.guard`) covers those.
@@ -111,6 +116,8 @@ class Watchdog:
         self._event = threading.Event()
         self._stopped = False
         self._thread: threading.Thread | None = None
+        #: ``check(now) -> when to call again``: the safety process's liveness check (``None``: no guard)
+        self.monitor: Callable[[float], float] | None = None
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._main, name="asyncdonkey-watchdog", daemon=True)
@@ -150,12 +157,23 @@ class Watchdog:
                     trip.tripped = trip.pending = False  # a fresh command: the output's own writer takes over
                     if deadline < wake:
                         wake = deadline
+            wake = min(wake, self._check_guard(now))
             self.next_wake = wake
             self._event.clear()
             if self._stopped:
                 break
             self._event.wait(max(0.0, wake - self.now()))
         self.next_wake = math.inf
+
+    def _check_guard(self, now: float) -> float:
+        monitor = self.monitor
+        if monitor is None:
+            return math.inf
+        try:
+            return monitor(now)
+        except Exception as exc:  # a bug there must not kill the watchdog
+            logger.error("watchdog: checking the safety process raised %r", exc)
+            return now + _IDLE_WAKE_S
 
     def _attempt(self, e: Entry, trip: _Trip, now: float) -> None:
         """One try at the safe state; on failure the next is scheduled (backoff), never given up."""

@@ -148,3 +148,25 @@ def test_valid_certificates_say_nothing(tmp_path, caplog):
         assert car.certificate_problems == [] and "not valid" not in caplog.text and "expired" not in caplog.text
     finally:
         car.close()
+
+
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.asyncio
+async def test_a_connected_subscriber_that_hears_nothing_says_so_once_and_again_when_samples_come(link_pair, caplog):
+    car, pilot = link_pair("cars/c1")
+    caplog.set_level(logging.INFO, logger="asyncdonkey.parts.zenoh.parts")
+    commands = ZenohSubscriber(car, CMD, group=PILOT_COMMAND, ping_every_s=0, silent_after_s=0.3)
+    watching = asyncio.ensure_future(commands.update())
+    try:
+        assert await until(lambda: commands.silences == 1, timeout=3.0)
+        await asyncio.sleep(0.4)  # still silent: said once
+        lines = [r.getMessage() for r in caplog.records]
+        assert len(lines) == 1 and commands.silences == 1
+        assert "nothing on 'cars/c1/pilot/command'" in lines[0]
+        assert "connected to 1 other Zenoh session(s)" in lines[0] and "access rules" in lines[0]
+        sender = ZenohPublisher(pilot, CMD, group=PILOT_COMMAND)
+        assert await until(lambda: (sender.run(0.0, 0.2, 0.0, 0.0), "samples arrive again" in caplog.text)[1])
+        assert commands.run() == (0.0, 0.2)
+    finally:
+        watching.cancel()

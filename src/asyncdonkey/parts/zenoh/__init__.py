@@ -7,7 +7,9 @@ Needs the ``zenoh`` extra (``pip install 'asyncdonkey[zenoh]'``). See ``docs/sca
   pilot's angle and throttle as one sample).
 * :class:`PilotServer`, :class:`BatchPilot`, :class:`FrameBatcher` — one pilot model for a fleet, batched.
 * :mod:`.pairing` — the secure configs of ``asyncdonkey zenoh-pair`` (one car, or a fleet and its server).
-* :mod:`.codec` — the wire format (documented for non-Python clients).
+* :mod:`.codec` — the wire format (documented for non-Python clients); :mod:`.sequence` — which numbered
+  samples a receiver takes (plausible ages; no sample can lock a sender out).
+* :mod:`.certs` — a Zenoh config's certificates against this machine's clock (a refused handshake says why).
 """
 
 from .batch_infer import BatchPilot

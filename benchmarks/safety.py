@@ -9,10 +9,10 @@
   loop thread for a second, sleeping or spinning in Python with the GIL. Measured: from the moment the command
   went stale (its origin + the window) to the neutral pulse on the chip, and from the block's start. Donkeycar has
   no failsafe: its car drives on through any stall (the figure there is the block itself).
-* **Provenance cost**: nanoseconds a part's output store takes with origins (the oldest-input rule and the
-  pass-through test) against the plain store the loop did before (value + write time), for a one-input part and
-  for a drive-mode selector (five inputs, two outputs); and the per-part loop overhead, flat out, beside
-  Donkeycar's ``Vehicle.update_parts``.
+* **Provenance cost**: nanoseconds a part's output store takes with origins (the oldest-input rule, a declared
+  selector's lookup, the in-place check) against the plain store the loop did before (value + write time), for a
+  one-input part, an undeclared five-input selector, our ``DriveMode`` and a part returning its input array; and
+  the per-part loop overhead, flat out, beside Donkeycar's ``Vehicle.update_parts``.
 * **Safety process** (the car as a process of its own, ``tests/safety/guarded_car.py``, on a PCA9685 model this
   process serves): after ``kill -9`` of the car, ms until both outputs show their safe pulses; with a catastrophic
   regular expression holding the car's GIL in its pilot, ms from the hang's start to the stopped pulse (the
@@ -204,11 +204,19 @@ def _store_ns(store, value, args, n: int) -> float:
 
 
 def provenance(n: int) -> dict:
-    """ns per store: with origins (this runtime) vs the plain store (value + write time)."""
+    """ns per store: with origins (this runtime) vs the plain store (value + write time), for a one-input part, an
+    undeclared five-input selector, our ``DriveMode`` (a declared selector) and a two-input part returning its input
+    array (the in-place check, which looks through a Memory of 50 channels)."""
+    from asyncdonkey.parts.control import DriveMode
+
     mem = Memory()
     mem.set("x", 1.0, origin=0.5)
-    for k in ("user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"):
+    for k in ("user/angle", "user/throttle", "pilot/angle", "pilot/throttle", "imu"):
         mem.set(k, 0.3, origin=0.5)
+    mem.set("user/mode", "local", origin=0.5)
+    mem.set("cam/image_array", np.zeros((120, 160, 3), np.uint8), origin=0.4)
+    for j in range(42):
+        mem.set(f"other/{j}", float(j), origin=0.5)
 
     class One:
         def run(self, x):
@@ -218,25 +226,21 @@ def provenance(n: int) -> dict:
         def run(self, m, ua, ut, pa, pt):
             return ua, ut
 
+    class Fuse:
+        def run(self, img, imu):
+            return img
+
     def offload(fn):
         return fn
 
-    one = build_entry(mem, One(), "one", ["x"], ["y"], False, None, False, "stop", 2.0, None, None, offload)
-    sel = build_entry(
-        mem,
-        Select(),
-        "drive_mode",
-        ["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"],
-        ["angle", "throttle"],
-        False,
-        None,
-        False,
-        "stop",
-        2.0,
-        None,
-        None,
-        offload,
-    )
+    def entry(part, name, ins, outs):
+        return build_entry(mem, part, name, ins, outs, False, None, False, "stop", 2.0, None, None, offload)
+
+    drive_ins = ["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"]
+    one = entry(One(), "one", ["x"], ["y"])
+    sel = entry(Select(), "select", drive_ins, ["angle", "throttle"])
+    dm = entry(DriveMode(), "drive_mode", drive_ins, ["angle", "throttle"])
+    fuse = entry(Fuse(), "fuse", ["cam/image_array", "imu"], ["cam/fused"])
     d, stamps = mem.d, mem.stamps
 
     def plain_one(value, args, now):
@@ -248,13 +252,14 @@ def provenance(n: int) -> dict:
             d[k] = v
             stamps[k] = now
 
-    args1 = one.args()
-    args5 = sel.args()
-    fresh = 2.0 + 0.0  # a new object: the inherit path
+    args1, args5, args2 = one.args(), sel.args(), fuse.args()
+    fresh = 2.0 + 0.0  # a new object
     res = {}
     for label, store, plain, value, args in (
         ("one_input", one.store, plain_one, fresh, args1),
         ("selector_5in_2out", sel.store, plain_two, (args5[1], fresh), args5),
+        ("drive_mode_declared", dm.store, plain_two, dm.part.run(*args5), args5),
+        ("input_array_returned", fuse.store, plain_one, args2[0], args2),
     ):
         ours = min(_store_ns(store, value, args, n) for _ in range(5))
         base = min(_store_ns(plain, value, args, n) for _ in range(5))

@@ -444,14 +444,16 @@ def _oldest_storer(
     def store_oldest_many(values: Any, args: Sequence[Any], now: float) -> None:
         values = unpack(values)
         o = oldest()
+        if o == _NEVER:  # nothing sensed behind any input: no origin, and nothing to age
+            for k, v in zip(outs, values, strict=False):
+                d[k] = v
+                stamps[k] = now
+                origins.pop(k, None)
+            return
         for k, v in zip(outs, values, strict=False):
             d[k] = v
             stamps[k] = now
-            if o > _NEVER:
-                origins[k] = o
-            else:
-                origins.pop(k, None)
-        for v in values[: len(outs)]:
+            origins[k] = o
             if type(v) not in immutable:
                 age_holders(v, args, o)
 
@@ -503,7 +505,7 @@ def _selector_storer(
     names once, then looked up (a drive mode returns one of three)."""
     d, stamps, origins = mem.d, mem.stamps, mem.origins
     oget = origins.get
-    plans: dict[Any, tuple[tuple[str, ...], ...]] = {}
+    plans: dict[Any, tuple[str | tuple[str, ...], ...]] = {}
     n = len(outs)
     make_plan = _selection_plan(name, ins, outs)
 
@@ -522,8 +524,8 @@ def _selector_storer(
         for k, v, group in zip(outs, values, plan, strict=False):
             d[k] = v
             stamps[k] = now
-            o = min(map(oget, group, _INFS), default=_INF)
-            if o < _INF:
+            o = oget(group) if type(group) is str else min(map(oget, group, _INFS), default=None)
+            if o is not None and o < _INF:
                 origins[k] = o
             else:
                 origins.pop(k, None)
@@ -533,9 +535,10 @@ def _selector_storer(
 
 def _selection_plan(
     name: str, ins: tuple[str | None, ...], outs: tuple[str, ...]
-) -> Callable[[Any], tuple[tuple[str, ...], ...]]:
-    """``plan(declaration)``: for each output, the channels whose origins date it; a declaration that is not one
-    entry per output, each an input index, a tuple of them or ``None``, raises naming the part."""
+) -> Callable[[Any], tuple[str | tuple[str, ...], ...]]:
+    """``plan(declaration)``: for each output, the channel (or the tuple of channels) whose origin dates it; a
+    declaration that is not one entry per output, each an input index, a tuple of them or ``None``, raises naming
+    the part."""
     every = _input_channels(ins)
     channel = tuple(None if k is None else k.removesuffix(AGE_SUFFIX) for k in ins)
 
@@ -545,16 +548,17 @@ def _selection_plan(
             f"input index 0..{len(ins) - 1}, a tuple of them, or None"
         )
 
-    def channels_of(picked: Any, src: Any) -> tuple[str, ...]:
+    def channels_of(picked: Any, src: Any) -> str | tuple[str, ...]:
         if src is None:
             return every
         group = src if isinstance(src, tuple) else (src,)
         for i in group:
             if type(i) is not int or not 0 <= i < len(ins):
                 raise bad(picked, f"with {i!r} not an input index")
-        return tuple(k for i in group if (k := channel[i]) is not None)
+        chans = tuple(k for i in group if (k := channel[i]) is not None)
+        return chans[0] if len(chans) == 1 else chans
 
-    def plan(picked: Any) -> tuple[tuple[str, ...], ...]:
+    def plan(picked: Any) -> tuple[str | tuple[str, ...], ...]:
         try:
             entries = tuple(picked)
         except TypeError:

@@ -6,12 +6,15 @@ All on the virtual clock, so every age and every time to neutral is exact.
 import ast
 import asyncio
 import math
+import types
 from pathlib import Path
 
 import pytest
 
 from asyncdonkey import Memory, Vehicle
 from asyncdonkey.parts.control import DriveMode, PilotCondition
+from asyncdonkey.parts.control import DriveMode as OurDriveMode
+from asyncdonkey.selectors import declared_sources
 
 from .rig import HALF, NEUTRAL, Rig
 
@@ -404,3 +407,60 @@ async def test_a_sensor_sample_two_seconds_old_reads_two_seconds_old():
     assert v.mem["imu/sample"] == (0.0, 0.0, 9.81)  # re-published every tick ...
     assert ages.seen[-1][0] == pytest.approx(2.0)  # ... and still 2 s old
     assert poller.errors > 0
+
+
+# ------------------------------------------------------------------------ declarations by interface
+
+
+def _template_class(template: str, name: str):
+    """A class of a Donkeycar template (``complete.py``, ``simulator.py``), compiled from the installed file."""
+    import donkeycar
+
+    src = (Path(donkeycar.__file__).parent / "templates" / template).read_text()
+    node = next(n for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ClassDef) and n.name == name)
+    ns: dict = {"cfg": types.SimpleNamespace(AI_THROTTLE_MULT=1.0)}
+    exec(compile(ast.Module(body=[node], type_ignores=[]), template, "exec"), ns)
+    return ns[name]
+
+
+@pytest.mark.donkeycar
+@pytest.mark.parametrize(
+    ("mode", "expected"), [("user", (1, 2, 3)), ("local_angle", (4, 2, 3)), ("local", (4, 5, 6)), (None, (4, 5, 6))]
+)
+def test_donkeycars_simulator_drive_mode_is_declared_as_its_code_chooses(mode, expected):
+    part = _template_class("simulator.py", "DriveMode")()
+    sources = declared_sources(part, 7, 3)
+    args = (mode, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    assert sources is not None and tuple(sources(*args)) == expected
+    # the outputs it returns are the inputs the declaration names (a pilot value that is there passes as it is)
+    out = part.run(*args)
+    assert tuple(args[i] for i in expected) == tuple(out)
+
+
+@pytest.mark.donkeycar
+@pytest.mark.parametrize("show_pilot_image", [False, True])
+@pytest.mark.parametrize("mode", ["user", "local"])
+def test_donkeycars_user_pilot_condition_is_declared_as_its_code_chooses(mode, show_pilot_image):
+    part = _template_class("complete.py", "UserPilotCondition")(show_pilot_image=show_pilot_image)
+    sources = declared_sources(part, 3, 3)
+    args = (mode, "user image", "pilot image")
+    assert sources is not None
+    declared = tuple(sources(*args))
+    assert declared[:2] == (0, 0)  # the run conditions, from the mode
+    assert args[declared[2]] == part.run(*args)[2]  # the image it shows, from the image it picked
+
+
+def test_a_part_named_like_a_known_selector_with_another_interface_is_not_declared():
+    class DriveMode:  # a user's own, with other inputs
+        def run(self, mode, a, b, c, d):
+            return a, b
+
+    class UserPilotCondition:
+        def run(self, mode, image):
+            return True, False, image
+
+    assert declared_sources(DriveMode(), 5, 2) is None
+    assert declared_sources(UserPilotCondition(), 2, 3) is None
+    # ours declares itself; the interface must also match the car's wiring (5 inputs, 2 outputs)
+    ours = declared_sources(OurDriveMode(), 5, 2)
+    assert ours is not None and tuple(ours("local", 1, 2, 3, 4)) == (3, 4)

@@ -133,7 +133,7 @@ class DriveMode:
         driver's input, the pilot's by the pilot's, so a stale pilot does not cut a driver in ``user`` mode and a
         fresh gamepad does not hide a silent pilot in ``local`` mode. A ``0.0`` put in for a pilot value that is
         missing is dated by that pilot input (none if it was never written: no age to drive on)."""
-        return _SOURCES[normalise_mode(mode, "DriveMode")]
+        return _SOURCES.get(mode) or _SOURCES[normalise_mode(mode, "DriveMode")]  # (run() has checked the mode)
 
 
 class AutoRecordOnThrottle:

@@ -2,29 +2,25 @@
 
 Everything a tick needs about a part is worked out here, so the tick itself only walks a list of prepared
 :class:`Entry` objects (as each drive's :class:`~asyncdonkey.partrun.PartRun` holds them): no per-tick
-``hasattr``/``isinstance``. That includes where the values it returns get
-their *origin* (the time of the sensing behind them), the provenance rule:
+``hasattr``/``isinstance``. That includes where the values it returns get their *origin* (the time of the
+sensing behind them), by the invariant of ``docs/provenance.md``: no value is ever dated younger than the
+sensing that could have produced it.
 
 * a part that states its own origin (``output_origin()``: a camera, a sensor poller, a controller, a network
   receiver) gives its outputs that origin;
 * a part without inputs is a source: its outputs are sensed when it returns;
-* any other part's outputs inherit the **oldest** origin among its inputs that count; a channel never written,
-  and a channel whose producing part was skipped by its ``run_condition`` on the current tick, does not count.
-  When no input counts, the oldest origin among all of them: a value is never younger than the sensing behind
-  it, so a pass-through after a switched-off pilot (``return t * 1.0``) publishes the pilot's old age, not
-  *now*. Nothing sensed at all (no input has an origin): the output has no origin, its age is infinite;
-* except that an output that *is* one of its inputs (the same object, not an equal one: a selector such as
-  ``DriveMode`` passing the user's command through) keeps that input's origin (if several inputs hold that
-  object, a live one before a dormant one, then the oldest), provided the object is immutable (a number, a
-  string, an enum, a tuple of those). A mutable one (an array, a list, a dict) may have been written into in
-  place with the other inputs' data (``np.add(frame, imu, out=frame); return frame``): it gets the older of its
-  own origin and the inherited one.
+* a declared selector (``output_sources()``, or a Donkeycar template class recognised by its interface:
+  :mod:`.selectors`) gives each output the oldest origin of the inputs it declares for that call;
+* any other part's outputs get the **oldest** origin among all its inputs that have one (a channel never written
+  has none; an ``@age`` input counts as its channel). Nothing about who wrote an input or when changes that, so
+  the order and names of the writes cannot make a value younger: a switched-off pilot's last throttle passed on
+  by a filter writing back to its own channel is as old as that throttle. No input with an origin: the output
+  has none, its age is infinite. When such an output is a mutable input object (an array the part may have
+  written the other inputs into), every channel holding that object is aged to the same origin.
 
-So a selector neither hides a dead pilot behind a fresh gamepad (in ``local`` mode the pilot's command is
-a new object made from the pilot's old data: the pilot's age) nor makes a driver's fresh command look stale
-(in ``user`` mode the user's value is passed through; the skipped pilot does not count). The cost is one dict
-read per input and one identity test per (input, output) pair, plus one type lookup for an output that is an
-input object; a part reading a single channel skips all that (its outputs have that channel's origin).
+A part that did not run (run condition false, returned ``None``, raised under ``on_error="continue"``) stores
+nothing: its channels keep their origins. The cost per call is one ``min`` over the inputs' origins and one type
+lookup per output; a part reading a single channel copies that channel's origin.
 """
 
 from __future__ import annotations
@@ -707,7 +703,7 @@ def checked_store(store: Store | None, name: str, outs: tuple[str, ...], contrac
     :class:`ContractViolation` naming the part, the channel, the value and what was expected *before anything is
     stored*, so the tick handles it like any part error (``on_error``) and no output of that call reaches Memory.
     The values are checked, never replaced: a checked car stores what an unchecked one does (the same objects,
-    which the provenance rule's pass-through test relies on). ``None`` passes: it is Donkeycar's "no value yet"
+    which the provenance rule's in-place check relies on). ``None`` passes: it is Donkeycar's "no value yet"
     for one of several outputs (a single output of ``None`` is never stored at all).
     """
     if store is None:

@@ -1,10 +1,13 @@
 """The age rule never makes data younger than the sensing behind it.
 
-Two ways it used to: an output whose inputs did not count (their producer was skipped by its run condition on
-this tick) was dated *now*, so a pass-through after a switched-off pilot re-published its old command as fresh;
-and an output that was one of its input objects kept that input's origin even when the object was an array the
-part had written other, older data into. Examples on the PCA9685 register model, then a property over random
-part graphs. All on the virtual clock, so every age and every time to neutral is exact.
+Ways it used to: an output whose inputs did not count (their producer was skipped by its run condition on this
+tick) was dated *now*, and the "skipped" mark stayed on a channel a later part rewrote, so a switched-off pilot's
+last command passed on (by a pass-through, a filter writing back to the same channel, straight into
+``DriveMode``, or combined with a fresh input) went out as fresh; and an output that was one of its input objects
+kept that input's origin even when the object was an array the part had written other, older data into. Examples
+on the PCA9685 register model, then a property over random part graphs (the stronger one, with the true sensing
+time carried by the values, is ``test_provenance_properties.py``). All on the virtual clock, so every age and
+every time to neutral is exact.
 """
 
 import asyncio
@@ -440,20 +443,19 @@ class World:
     value it holds, from the data flow alone.
 
     Precisely: a source's value has its own sensing time behind it (the stated one, else the time it returned).
-    A part reading several channels uses those that count on this tick: the inputs holding a value whose
-    producer was not skipped by its run condition earlier in this tick (a producer later in the order has not
-    been skipped yet: its value from the last tick counts), or, if none does, all inputs holding a value (as a
-    ``DriveMode`` uses the pilot only in the modes that run it). Then:
+    A part reading several channels may use every input holding a value (a producer skipped by its run condition
+    still holds its last one). Then:
 
     * a new object has the union of the sets of the inputs it used behind it;
     * an input's immutable object passed through (a tuple) has only that input's set behind it;
     * an input's mutable object returned as it is (a list; whether the part wrote into it cannot be seen from
       outside) has that input's set and those of the inputs it used: anything could have been written into it.
 
-    A channel's set is that of the value as written to it: a later in-place write into the same object through
-    another channel is dated on that channel's writer's outputs (the rule cannot see every alias of an object).
-    ``@age`` inputs bring no sensing (they are times). The property: no channel's origin is later than the
-    oldest sensing time in its set (its age is never less than that sensing's).
+    A channel's set is that of the value as written to it (a later in-place write into the same object through
+    another channel is not added to it here: the runtime ages those holders too, which this model does not
+    follow). ``@age`` inputs bring no sensing (they are times). The property: no channel's origin is later than
+    the oldest sensing time in its set (its age is never less than that sensing's), and a channel with sensing
+    behind it has an origin no earlier than the run's first sensing.
     """
 
     def __init__(self, specs: list[PartSpec]) -> None:
@@ -471,15 +473,8 @@ class World:
         self.uid += 1
         return self.uid
 
-    def skipped_before(self, j: int) -> set[str]:
-        """Channels whose producer, earlier than part ``j`` in the order, was skipped on this tick."""
-        return {f"c{p}" for p, s in enumerate(self.specs[:j]) if s.runs is not None and not _bit(s.runs, self.tick)}
-
     def used(self, j: int, ins: tuple[str, ...]) -> list[str]:
-        held = [c for c in ins if not c.endswith("@age") and c in self.sets]
-        skipped = self.skipped_before(j)
-        live = [c for c in held if c not in skipped]
-        return live or held
+        return [c for c in ins if not c.endswith("@age") and c in self.sets]
 
     def union(self, channels) -> frozenset[float]:
         return frozenset().union(*(self.sets[c] for c in channels))

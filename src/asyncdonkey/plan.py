@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from .contracts import ContractViolation
 from .errors import OutputCountError, PartSpecError, PartTimeoutError
 from .memory import Memory
-from .selectors import OutputSources, declared_sources
+from .origin_sources import OutputSources, declared_sources
 
 if TYPE_CHECKING:
     from .contracts import Contract, Contracts

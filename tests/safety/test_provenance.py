@@ -14,7 +14,7 @@ import pytest
 from asyncdonkey import Memory, Vehicle
 from asyncdonkey.parts.control import DriveMode, PilotCondition
 from asyncdonkey.parts.control import DriveMode as OurDriveMode
-from asyncdonkey.selectors import declared_sources
+from asyncdonkey.origin_sources import declared_sources
 
 from .rig import HALF, NEUTRAL, Rig
 

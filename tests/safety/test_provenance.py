@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from asyncdonkey import Memory, Vehicle
+from asyncdonkey.origin_sources import declared_sources
 from asyncdonkey.parts.control import DriveMode, PilotCondition
 from asyncdonkey.parts.control import DriveMode as OurDriveMode
-from asyncdonkey.origin_sources import declared_sources
 
 from .rig import HALF, NEUTRAL, Rig
 

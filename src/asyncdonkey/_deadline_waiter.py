@@ -167,9 +167,9 @@ class DeadlineWaiter(PreciseWait):
             self._call = None
             if self.precise and not self._call_early:  # (an early callback reports its arrival: arrived())
                 self._learn(t - target)
-                deadline = self._call_deadline
+                spin_until = self._call_deadline
                 now = self._now
-                while t < deadline:  # the last stretch is spun on the clock
+                while t < spin_until:  # the last stretch is spun on the clock
                     t = now()
             # No read() of the timerfd: arming it again clears the expiry; if the callback ends the calls,
             # the next readiness finds nothing pending and consumes the expiry then.

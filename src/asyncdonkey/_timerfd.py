@@ -73,9 +73,10 @@ class Timerfd:
 
     def __init__(self) -> None:
         if _OS_NATIVE:
-            self.fd: int = os.timerfd_create(CLOCK_MONOTONIC, flags=TFD_NONBLOCK | TFD_CLOEXEC)
+            # (os.timerfd_* are Python 3.13's; mypy checks for 3.11, whose os module has none)
+            self.fd: int = os.timerfd_create(CLOCK_MONOTONIC, flags=TFD_NONBLOCK | TFD_CLOEXEC)  # type: ignore[attr-defined,unused-ignore]
             fd = self.fd
-            settime_ns = os.timerfd_settime_ns
+            settime_ns = os.timerfd_settime_ns  # type: ignore[attr-defined,unused-ignore]
 
             def arm_native(deadline_ns: int) -> None:
                 settime_ns(fd, flags=TFD_TIMER_ABSTIME, initial=deadline_ns)

@@ -26,4 +26,5 @@ def exact_sleeps() -> bool:
     Returns whether it was set (False off Linux, or where the call is refused)."""
     if _PRCTL is None:
         return False
-    return _PRCTL(_PR_SET_TIMERSLACK, 1, 0, 0, 0) == 0
+    status: int = _PRCTL(_PR_SET_TIMERSLACK, 1, 0, 0, 0)
+    return status == 0

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import logging
 import math
 import threading
@@ -212,12 +213,12 @@ class Drive:
         for p in self.pipelines:
             p.task = self.loop.create_task(p.main(), name=f"pipelined:{p.name}")
             self.tasks.append((p.entry, p.task))
-        for e, subscribe, reaction in self.push_sources:
+        for source, subscribe, reaction in self.push_sources:
             if reaction is not None:
-                reaction.task = self.loop.create_task(reaction.main(), name=f"react:{e.name}")
-                self.tasks.append((e.entry, reaction.task))
+                reaction.task = self.loop.create_task(reaction.main(), name=f"react:{source.name}")
+                self.tasks.append((source.entry, reaction.task))
             self._unsubscribe.append(
-                subscribe(lambda value, origin, e=e, r=reaction: self._push_threadsafe(e, value, origin, r))
+                subscribe(lambda value, origin, e=source, r=reaction: self._push_threadsafe(e, value, origin, r))
             )
         for r in self.runs:
             e = r.entry
@@ -227,7 +228,7 @@ class Drive:
                 t.start()
             elif e.background is Background.TASK:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
-                task.add_done_callback(lambda t, r=r: self._task_done(r, t))
+                task.add_done_callback(functools.partial(self._task_done, r))
                 self.tasks.append((e, task))
 
     def _push_threadsafe(self, e: PartRun, value: Any, origin: float, reaction: Reaction | None) -> None:

@@ -53,7 +53,7 @@ import asyncio
 import functools
 import logging
 import threading
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from .errors import PartTimeoutError
@@ -243,7 +243,7 @@ class Reaction:
             await run_reactions(drive, self.entries, lambda e, exc: drive.background_failed(e, exc, "reacting run()"))
 
 
-def react_chain(runs: tuple[PartRun, ...], channels: set[str]) -> list[PartRun]:
+def react_chain(runs: Sequence[PartRun], channels: set[str]) -> list[PartRun]:
     """The ``react=True`` parts fed, directly or through each other, by ``channels``, in add() order."""
     chain: list[PartRun] = []
     channels = set(channels)

@@ -34,7 +34,7 @@ import logging
 import math
 import sys
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeGuard
 
 from .contracts import ContractViolation
 from .errors import OutputCountError, PartSpecError, PartTimeoutError
@@ -117,6 +117,28 @@ class Entry:
         "timeout",
         "trigger",
     )
+
+    # set by build_entry(), once (declared here so that the slots have types)
+    part: Any
+    name: str
+    inputs: tuple[str | None, ...]
+    outputs: tuple[str, ...]
+    run_condition: str | None
+    on_error: OnError
+    shutdown_timeout: float
+    timeout: float | None
+    background: Background
+    executor: bool
+    awaits: bool
+    is_sync_inline: bool
+    #: the part's own method (``run`` or ``run_threaded``), and what the tick calls (offloaded, bounded)
+    fn: Callable[..., Any]
+    call: Callable[..., Any]
+    args: Callable[[], Sequence[Any]]
+    store: Callable[[Any, Sequence[Any], float], None] | None
+    shutdown_fn: Callable[..., Any] | None
+    shutdown_takes_timeout: bool
+    actuator: bool
 
     def __init__(self) -> None:
         self.pipelined = False
@@ -276,12 +298,17 @@ def _run_method(part: Any, name: str, where: str, threaded: bool, async_update: 
 
 
 # ------------------------------------------------------------------------------------------------ inputs
+def _all_values(ins: tuple[str | None, ...]) -> TypeGuard[tuple[str, ...]]:
+    """Every input is a channel whose value is read as it is (no ``None``, no ``@age``): the plain getters apply."""
+    return not any(i is None or i.endswith(AGE_SUFFIX) for i in ins)
+
+
 def _arg_getter(mem: Memory, ins: tuple[str | None, ...]) -> Callable[[], Sequence[Any]]:
     d = mem.d
     if not ins:
         empty: tuple[Any, ...] = ()
         return lambda: empty
-    if not any(i is None or i.endswith(AGE_SUFFIX) for i in ins):
+    if _all_values(ins):
         dget = d.get
         if len(ins) == 1:
             (k,) = ins

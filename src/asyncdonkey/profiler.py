@@ -296,8 +296,9 @@ class TableSeries:
         """The samples of the ended ticks in the window, oldest first (the newest dropped when ``drop_last``)."""
         t = self.table
         first = max(1, t.oldest()) if self.skip_first else t.oldest()
-        v = t.values(first, t.rows - 1 if drop_last else t.rows)[:, self.col]
-        return v[~np.isnan(v)]
+        v: np.ndarray = t.values(first, t.rows - 1 if drop_last else t.rows)[:, self.col]
+        kept: np.ndarray = v[~np.isnan(v)]
+        return kept
 
     @property
     def max(self) -> float:
@@ -335,7 +336,9 @@ class Profiler:
         self.overrun = TableSeries("tick overrun", table, TickTable.OVERRUN, skip_first=False)
         self.tick = TableSeries("tick duration", table, TickTable.TICK, skip_first=False)
 
-    def series_for(self, name: str) -> Series:
+    def series_for(self, name: str) -> Series | TableSeries:
+        """The part's series, made (a :class:`Series`) if it has none yet; a drive may have put its tick table's
+        column (a :class:`TableSeries`) in its place."""
         s = self.parts.get(name)
         if s is None:
             s = self.parts[name] = Series(name, self.window)

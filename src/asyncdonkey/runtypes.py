@@ -11,22 +11,48 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import threading
-from collections.abc import Sequence
-from typing import Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
-__all__ = ["LoopActivity", "PipelineHost", "ShutdownScope", "Stoppable"]
+if TYPE_CHECKING:  # types only: each of these modules imports this one
+    from .clock import Clock
+    from .memory import Memory
+    from .partrun import PartRun
+    from .pipeline import Guard, Reaction
+    from .plan import Entry
+    from .safety.watchdog import Watchdog
+
+__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "ShutdownScope", "Stoppable"]
+
+
+class RunningCall(Protocol):
+    """What the loop thread is inside (a part's run, or what the tick calls in its place), as the watchdog and the
+    signal handler name it: whether it holds the loop thread until it returns."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def is_sync_inline(self) -> bool: ...
 
 
 class LoopActivity(Protocol):
     """What the loop thread is doing, read from other threads (the watchdog, the signal handler).
 
     ``current`` is the entry running now (``None`` between parts), ``part_started`` when it started on the
-    runtime clock (``inf`` between parts)."""
+    runtime clock (``inf`` between parts). Read-only here: only the loop thread writes them."""
 
-    current: Any
-    part_started: float
-    entries: Sequence[Any]
-    stop_grace_s: float
+    @property
+    def current(self) -> RunningCall | None: ...
+
+    @property
+    def part_started(self) -> float: ...
+
+    @property
+    def entries(self) -> Sequence[Entry]: ...
+
+    @property
+    def stop_grace_s(self) -> float: ...
 
 
 class Stoppable(Protocol):
@@ -41,27 +67,53 @@ class Stoppable(Protocol):
 class ShutdownScope(Protocol):
     """What shutdown takes down: the entries, the background work the drive owns, its watchdog."""
 
-    entries: Sequence[Any]
-    loop: asyncio.AbstractEventLoop
-    tasks: list[tuple[Any, asyncio.Task[Any]]]
-    threads: list[tuple[Any, threading.Thread]]
+    @property
+    def entries(self) -> Sequence[Entry]: ...
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    @property
+    def tasks(self) -> Sequence[tuple[Entry, asyncio.Task[Any]]]: ...
+
+    @property
+    def threads(self) -> Sequence[tuple[Entry, threading.Thread]]: ...
+
+    #: shut down and dropped (set to ``None``) by shutdown
     executor: concurrent.futures.ThreadPoolExecutor | None
-    watchdog: Any
-    abandoned: list[str]
+
+    @property
+    def watchdog(self) -> Watchdog | None: ...
+
+    @property
+    def abandoned(self) -> list[str]: ...
 
 
 class PipelineHost(Protocol):
     """What the pipelines and reactions use of the drive they run beside (``runs``: each part's
     :class:`~asyncdonkey.partrun.PartRun` for this drive, in add() order)."""
 
-    runs: Sequence[Any]
-    loop: asyncio.AbstractEventLoop
-    clock: Any
-    mem: Any
-    on: bool
-    guards: Any
-    push_sources: list[Any]
+    @property
+    def runs(self) -> Sequence[PartRun]: ...
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def mem(self) -> Memory: ...
+
+    @property
+    def on(self) -> bool: ...
+
+    #: set by the pipelines' wiring (``guard_entries``)
+    guards: list[Guard]
+
+    @property
+    def push_sources(self) -> list[tuple[PartRun, Callable[..., Any], Reaction | None]]: ...
 
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor: ...
 
-    def background_failed(self, e: Any, exc: BaseException, what: str = ...) -> None: ...
+    def background_failed(self, e: PartRun, exc: BaseException, what: str = ...) -> None: ...

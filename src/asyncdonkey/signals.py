@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 from .errors import PartInterrupted
 
 if TYPE_CHECKING:
-    from .runtypes import LoopActivity, Stoppable
+    from .runtypes import LoopActivity, RunningCall, Stoppable
 
 __all__ = ["EXIT_INTERRUPTED", "PartInterrupted", "force_safe_exit", "stop_on_signals"]
 
@@ -81,7 +81,7 @@ class _SignalStop:
         self.vehicle = vehicle
         self.shutdown_deadline_s = shutdown_deadline_s
         self.count = 0
-        self._interrupt: tuple[Any, float] | None = None  # (entry, part_started) to interrupt
+        self._interrupt: tuple[RunningCall, float] | None = None  # (entry, part_started) to interrupt
         self._done = threading.Event()
         self._main_ident = threading.main_thread().ident
 

@@ -234,7 +234,8 @@ class Output:
         self.register = int(route["register"])
         self.data = [int(b) for b in route["data"]]
         ai = route.get("auto_increment")
-        self.ai_register, self.ai_mask = (int(ai[0]), int(ai[1])) if ai else (None, 0)
+        self.ai_register: int | None = int(ai[0]) if ai else None
+        self.ai_mask = int(ai[1]) if ai else 0
         self.smbus = open_smbus(route["smbus"])
 
     def write_safe(self) -> None:

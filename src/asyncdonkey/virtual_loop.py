@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextvars
 import functools
 import itertools
 import math
@@ -70,9 +71,12 @@ import time
 import weakref
 from asyncio import futures
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
 from . import _asyncio_internals as _internals
+
+_T = TypeVar("_T")
+_Ts = TypeVarTuple("_Ts")
 
 __all__ = [
     "VirtualClockBudgetExceeded",
@@ -149,10 +153,19 @@ _newest_thread = _internals.newest_thread
 _WRAP_FUTURE = _internals.WRAP_FUTURE
 
 
-class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
+_Events = Any  # what a selector's select() returns: a list of (SelectorKey, events) pairs, or _NO_EVENTS
+
+
+class _VirtualSelector(selectors.DefaultSelector):
     """The platform selector, counting its registered file descriptors (one is the loop's wake-up pipe). The
     loop's own iteration polls it only when its policy says so; in debug mode asyncio's iteration runs instead,
     and the loop replaces this selector's ``select`` with the same policy."""
+
+    #: the loop's policy, which asyncio's own iteration (debug mode) selects through: an instance attribute that
+    #: stands in for the method (set by the loop; until then the platform's ``select``). The stub's type says a
+    #: list; the policy returns an empty tuple when nothing is ready (no list made per iteration), which asyncio's
+    #: iteration only loops over.
+    select: Callable[[float | None], _Events]  # type: ignore[assignment]
 
     def __init__(self) -> None:
         super().__init__()
@@ -169,7 +182,28 @@ class _VirtualSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-ty
         return key
 
 
-class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
+if TYPE_CHECKING:
+
+    class _SelectorEventLoop(asyncio.SelectorEventLoop):
+        """asyncio's private loop members this loop uses, which typeshed's stubs leave out (types only: at run
+        time the base is asyncio's own class, the else branch)."""
+
+        _debug: bool
+
+        def _check_closed(self) -> None: ...
+
+        def _check_thread(self) -> None: ...
+
+        def _check_callback(self, callback: object, method: str) -> None: ...
+
+        async def _make_subprocess_transport(
+            self, protocol: asyncio.BaseProtocol, args: Any, *rest: Any, **kwargs: Any
+        ) -> asyncio.SubprocessTransport: ...
+else:
+    _SelectorEventLoop = asyncio.SelectorEventLoop
+
+
+class VirtualClockLoop(_internals.LoopIteration, _SelectorEventLoop):
     """A selector event loop whose :meth:`time` is virtual and jumps to the next timer when all tasks wait.
 
     Use it as ``asyncio.Runner(loop_factory=VirtualClockLoop)`` or, in pytest, with ``@pytest.mark.asyncio``
@@ -192,6 +226,8 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
 
     #: read by :func:`asyncdonkey.clock.get_clock` to take time from the loop itself
     is_virtual_clock = True
+    #: asyncio's (private) selector: the one this loop made
+    _selector: _VirtualSelector
 
     def __init__(
         self,
@@ -233,7 +269,7 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         self._external_pending = 0
         self._holds: dict[int, tuple[str, Callable[[], bool]]] = {}
         self._hold_ids = itertools.count()
-        self._procs: list[tuple[Any, str]] = []
+        self._procs: list[tuple[asyncio.SubprocessTransport, str]] = []
         self._threads_before: weakref.WeakSet[threading.Thread] = weakref.WeakSet(threading.enumerate())
         # The thread count and the newest thread when the last census found nothing to watch (a census is cached
         # while both stay the same: a thread started since changes the newest even if another one ended). At
@@ -246,7 +282,8 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         self._spin_since: float | None = None
         self._failure: VirtualClockError | None = None
         self._idle = 0
-        self._real_select = super(_VirtualSelector, selector).select
+        # the platform's select (the class's method: not yet replaced below)
+        self._real_select: Callable[[float | None], list[tuple[selectors.SelectorKey, int]]] = selector.select
         selector.select = self._select  # asyncio's own iteration (debug mode) selects through the policy
 
     # -- time ---------------------------------------------------------------------------------------------
@@ -274,7 +311,13 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         self._virtual_time = target
         self.jumps += 1
 
-    def call_at(self, when: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
+    def call_at(
+        self,
+        when: float,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
+    ) -> asyncio.TimerHandle:
         if when is None:
             raise TypeError("when cannot be None")
         if not self._debug:
@@ -286,12 +329,20 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         _internals.push_timer(self, timer)
         return timer
 
-    def call_soon(self, callback: Callable[..., Any], *args: Any, context: Any = None) -> asyncio.Handle:
+    def call_soon(
+        self, callback: Callable[[Unpack[_Ts]], object], *args: *_Ts, context: contextvars.Context | None = None
+    ) -> asyncio.Handle:
         if self._debug:
             return super().call_soon(callback, *args, context=context)
         return _internals.queue_callback(self, callback, args, context)
 
-    def call_later(self, delay: float, callback: Callable[..., Any], *args: Any, context: Any = None) -> Any:
+    def call_later(
+        self,
+        delay: float,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
+    ) -> asyncio.TimerHandle:
         if delay is None or self._debug:
             return super().call_later(delay, callback, *args, context=context)
         return self.call_at(self._virtual_time + delay, callback, *args, context=context)
@@ -306,10 +357,12 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
             fut.add_done_callback(self._job_done)
         return fut
 
-    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+    def run_in_executor(
+        self, executor: concurrent.futures.Executor | None, func: Callable[[Unpack[_Ts]], _T], *args: *_Ts
+    ) -> asyncio.Future[_T]:
         thread: list[int | None] = [None]
 
-        def in_the_executor(*call_args: Any) -> Any:
+        def in_the_executor(*call_args: *_Ts) -> _T:
             thread[0] = threading.get_ident()
             try:
                 return func(*call_args)
@@ -342,7 +395,9 @@ class VirtualClockLoop(_internals.LoopIteration, asyncio.SelectorEventLoop):
         finally:
             self._external_pending -= 1
 
-    async def _make_subprocess_transport(self, protocol: Any, args: Any, *rest: Any, **kwargs: Any) -> Any:
+    async def _make_subprocess_transport(
+        self, protocol: asyncio.BaseProtocol, args: Any, *rest: Any, **kwargs: Any
+    ) -> asyncio.SubprocessTransport:
         transport = await super()._make_subprocess_transport(protocol, args, *rest, **kwargs)
         argv = [args] if isinstance(args, (str, bytes)) else list(args)
         self._procs.append((transport, f"subprocess {transport.get_pid()} ({' '.join(map(str, argv))[:60]})"))

@@ -49,8 +49,12 @@ FAST := not realtime and not browser and not donkeycar and not network and not s
 run: $(VENV)/.base
 	$(VENV)/bin/asyncdonkey run examples/car.py $(ARGS)
 
+# The type check: mypy, strict on the safety, time and drive-core modules, elsewhere capped by .ci/mypy-ceiling.txt
+TYPECHECK := $(PY) .ci/mypy-ceiling
+
 test: $(VENV)/.test $(CHROMIUM)
 	$(VENV)/bin/ruff check .
+	$(TYPECHECK)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 test-fast: $(VENV)/.test
@@ -74,6 +78,7 @@ test-loaded: $(VENV)/.test $(CHROMIUM)
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(TYPECHECK)
 
 format: $(VENV)/.test
 	$(VENV)/bin/ruff format .
@@ -82,4 +87,4 @@ bench: $(VENV)/.test
 	$(PY) benchmarks/run_all.py --write-docs
 
 clean:
-	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache build *.egg-info src/*.egg-info
+	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache .mypy_cache build *.egg-info src/*.egg-info

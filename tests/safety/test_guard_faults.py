@@ -155,30 +155,20 @@ def the_guard(car: Car) -> int:
 
 
 class Watcher:
-    """Every change of one channel's pulse, with its time, seen from a thread of this process."""
+    """Every change of one channel's pulse, with the time the chip took it: the register model's timeline, read
+    back, so a pulse held for one tick is seen even when this process was not scheduled during it."""
 
     def __init__(self, pca: PCA9685Model, channel: int) -> None:
         self.pca, self.channel = pca, channel
-        self.changes: list[tuple[float, int]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
 
-    def _run(self) -> None:
-        last = None
-        while not self._stop.is_set():
-            p = self.pca.pulse(self.channel)
-            if p != last:
-                self.changes.append((time.monotonic(), p))
-                last = p
-            time.sleep(0.0005)
+    @property
+    def changes(self) -> list[tuple[float, int]]:
+        return list(self.pca.timeline[self.channel])
 
     def first(self, pulse: int, after: float) -> float | None:
-        return next((t for t, p in list(self.changes) if p == pulse and t >= after), None)
+        return next((t for t, p in self.changes if p == pulse and t >= after), None)
 
     def stop(self) -> list[tuple[float, int]]:
-        self._stop.set()
-        self._thread.join()
         return self.changes
 
 

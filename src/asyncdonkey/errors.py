@@ -3,6 +3,58 @@
 :class:`AsyncdonkeyError` is the root. Each error also keeps the standard-library base a user would reach for
 first (``ValueError`` for a bad argument, ``RuntimeError`` for a failure while driving), so code written
 against Donkeycar or the standard library keeps catching what it caught before.
+
+This module imports nothing from the package at run time: every module can import it, so every module's
+errors can derive from the root without an import cycle. The tree (``+`` names the standard-library bases each
+class adds; ``tests/core/test_error_tree.py`` checks that every public exception class of the package is under
+the root)::
+
+    AsyncdonkeyError                                   (Exception)
+    ├── the core (asyncdonkey.errors, asyncdonkey.contracts, asyncdonkey.options, asyncdonkey.extras)
+    │   ├── PartSpecError          + ValueError, AssertionError   Vehicle.add got something that cannot run
+    │   ├── OutputCountError       + ValueError                   a part's return does not fit its outputs
+    │   ├── ChannelCountError      + IndexError, ValueError       a multi-channel Memory write is short
+    │   ├── PartTimeoutError       + TimeoutError                 an awaited part overran its timeout
+    │   ├── PartError              + RuntimeError                 a part failed while driving
+    │   ├── ContractViolation      + ValueError                   a value breaks its channel's contract
+    │   ├── BadValue               + ValueError                   an option is not of the expected kind
+    │   └── MissingExtra           + ImportError                  an optional extra is not installed
+    ├── safety and time
+    │   ├── SafetyProcessError     + RuntimeError                 the safety process could not start
+    │   └── VirtualClockError      + RuntimeError                 the virtual clock cannot go on
+    │       └── VirtualClockDeadlock, VirtualClockStall, VirtualClockBudgetExceeded, VirtualClockLivelock
+    ├── hardware (asyncdonkey.hw)
+    │   ├── I2CError               + OSError
+    │   │   └── I2CDeviceNotFound, I2CDeviceInUse, MPUIdentityError
+    │   ├── LockHeld                                              another process owns the device
+    │   ├── CameraError            + RuntimeError
+    │   │   └── PicameraMissing    + ImportError
+    │   ├── SerialPortClosed       + ConnectionError
+    │   ├── EncoderProtocolError   + ValueError
+    │   ├── PinSpecError           + ValueError
+    │   └── RPLidarError           + RuntimeError
+    ├── parts (asyncdonkey.parts)
+    │   ├── CalibrationLocked      + ValueError                   a calibration would move "stopped" mid-drive
+    │   ├── PilotModelError        + ValueError
+    │   ├── TubError
+    │   │   ├── TubNotFoundError   + FileNotFoundError
+    │   │   ├── TubFormatError     + ValueError
+    │   │   │   └── TubImagePathError, McapReadError
+    │   │   └── TubImageError      + OSError
+    │   ├── FoxgloveServerError    + OSError
+    │   ├── WebConfigError         + ValueError
+    │   │   └── CommandError, CalibrationError
+    │   ├── CodecError             + ValueError
+    │   ├── ZenohConfigError       + ValueError
+    │   └── PairExists             + ValueError
+    ├── commands (asyncdonkey.commands)
+    │   ├── CarFileError, ReplayError, QuantizeError
+    │   └── ConvertError, ReportError   + ValueError
+    └── testing
+        └── Picamera2ModelHang     + AssertionError               a call that would hang the real library
+
+One class stays outside on purpose: :class:`PartInterrupted` is a ``BaseException`` (like
+``KeyboardInterrupt``) so that a part's ``except Exception`` cannot swallow the stop request it carries.
 """
 
 from __future__ import annotations

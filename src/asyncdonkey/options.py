@@ -20,12 +20,14 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
+from .errors import AsyncdonkeyError
+
 __all__ = ["BadValue", "non_negative_float", "non_negative_int", "option", "positive_float"]
 
 T = TypeVar("T")
 
 
-class BadValue(ValueError):
+class BadValue(AsyncdonkeyError, ValueError):
     """A value is not of the expected kind; the message is ``expected <kind>, got <value>``."""
 
 

@@ -74,6 +74,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
 from . import _asyncio_internals as _internals
+from .errors import AsyncdonkeyError
 
 _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")
@@ -89,7 +90,7 @@ __all__ = [
 ]
 
 
-class VirtualClockError(RuntimeError):
+class VirtualClockError(AsyncdonkeyError, RuntimeError):
     """Base class for virtual-clock failures."""
 
 

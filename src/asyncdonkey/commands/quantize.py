@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import AsyncdonkeyError
 from ..extras import require
 from ..parts.tub import Tub, TubError, TubImageError
 
@@ -50,7 +51,7 @@ WARN_ANGLE_DIFF = 0.05
 METHODS = {"minmax": "MinMax", "entropy": "Entropy", "percentile": "Percentile"}
 
 
-class QuantizeError(Exception):
+class QuantizeError(AsyncdonkeyError):
     """Quantization cannot run; the message is one line naming the model, tub or output file."""
 
 

@@ -36,6 +36,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import AsyncdonkeyError
+
 __all__ = ["LOCK_DIR_CANDIDATES", "DeviceOwner", "LockHeld", "acquire", "held", "lock_dir", "read_owner", "release"]
 
 #: Tried first, in order, before ``$XDG_RUNTIME_DIR`` and the temporary directory.
@@ -73,7 +75,7 @@ class DeviceOwner:
         return f"process {self.pid} ({self.command}), started {time.strftime(fmt, when)}"
 
 
-class LockHeld(Exception):
+class LockHeld(AsyncdonkeyError):
     """Another process holds the lock at ``path``; ``owner`` is what its file says (``None`` if nothing
     readable names a live process)."""
 

@@ -56,6 +56,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from ..clock import Clock, DeadlineWaiter, get_clock
+from ..errors import AsyncdonkeyError
 from ..hw.i2c import I2CBusRegistry
 from ..hw.pca9685 import PWMChannel, open_pwm_channel
 from ..hw.pinspec import PCA9685Pin
@@ -67,7 +68,7 @@ __all__ = ["CalibrationLocked", "PWMSteering", "PWMThrottle", "donkeycar_map_ran
 logger = logging.getLogger(__name__)
 
 
-class CalibrationLocked(ValueError):
+class CalibrationLocked(AsyncdonkeyError, ValueError):
     """A calibration refused because it would change what "stopped" is during a drive (the message says which
     pulse, the drive's and the one asked)."""
 

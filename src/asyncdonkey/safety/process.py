@@ -55,6 +55,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from ..errors import AsyncdonkeyError
 from .guard import PHASE_ENDING, PHASE_TICKING, SharedState
 
 __all__ = ["GuardedOutput", "SafetyProcess", "SafetyProcessError"]
@@ -71,7 +72,7 @@ MAX_RESTARTS = 3
 STOP_ANSWER_S = 1.5
 
 
-class SafetyProcessError(RuntimeError):
+class SafetyProcessError(AsyncdonkeyError, RuntimeError):
     """The safety process could not be started (it names the output or the reason)."""
 
 

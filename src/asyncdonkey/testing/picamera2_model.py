@@ -63,12 +63,14 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import AsyncdonkeyError
+
 __all__ = ["Picamera2Model", "Picamera2ModelHang"]
 
 _FORMATS = {"RGB888": 3, "BGR888": 3, "XRGB8888": 4, "XBGR8888": 4}
 
 
-class Picamera2ModelHang(AssertionError):
+class Picamera2ModelHang(AsyncdonkeyError, AssertionError):
     """A call that would block forever on the real library (``capture_request()`` without a timeout)."""
 
 

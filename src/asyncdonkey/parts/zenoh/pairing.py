@@ -49,6 +49,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ...errors import AsyncdonkeyError
+
 __all__ = [
     "COMMAND_CHANNELS",
     "DEFAULT_COMMANDS",
@@ -83,7 +85,7 @@ COMMAND_CHANNELS = frozenset(
 DEFAULT_COMMANDS = (PILOT_COMMAND, "pilot/angle", "pilot/throttle")
 
 
-class PairExists(ValueError):
+class PairExists(AsyncdonkeyError, ValueError):
     """A pairing would write over existing files (the message names them): a new CA would silently cut off
     every identity issued by the old one."""
 

@@ -4,8 +4,8 @@ A :class:`~asyncdonkey.loop.Vehicle` is the car's *definition* (its parts and ch
 again and again; everything that belongs to one run lives here and is made fresh each time: the clock, the
 profiler, the stop latch, the background tasks and ``update()`` threads, the watchdog, the counters the report is
 made of, and for each part a :class:`~asyncdonkey.partrun.PartRun` (its error count, timing series, latency
-recorder, pipeline kicks, guard, checked stores). The vehicle's entries (the plan ``add()`` made) are only read.
-So a second run reports only itself and starts from the same plan, a ``stop()`` meant for one run cannot leak
+recorder, pipeline kicks, re-entry guard, checked stores). The vehicle's entries (the plan ``add()`` made) are only
+read. So a second run reports only itself and starts from the same plan, a ``stop()`` meant for one run cannot leak
 into another, and every ending (done, stopped, failed, cancelled) fills the same report.
 
 The tick (:meth:`Drive.tick_loop`) is flat: for each part's run, check its run condition, read its inputs, call
@@ -33,7 +33,7 @@ from .clock import TICK_GRID as _TICK_GRID
 from .errors import PartError, PartInterrupted
 from .memory import Memory
 from .partrun import PartRun
-from .pipeline import Guard, Reaction, after_store, build_pipelines
+from .pipeline import Reaction, ReentryGuard, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
 from .ratelimit import LogThrottle
@@ -99,7 +99,7 @@ class Drive:
         self.on = False
         self.watchdog: Watchdog | None = None
         #: the safety process, heartbeaten once a tick (None: none runs)
-        self.guard: SafetyProcess | None = None
+        self.safety_process: SafetyProcess | None = None
         # what the loop thread is doing (read by the watchdog thread): the run (or tick stand-in) being called
         self.current: Any = None
         self.part_started = math.inf
@@ -123,7 +123,7 @@ class Drive:
         self.push_sources: list[tuple[PartRun, Any, Reaction | None]] = []
         self._unsubscribe: list[Any] = []
         #: the parts more than one path can be inside at once, each kept to one call at a time (asyncdonkey.pipeline)
-        self.guards: list[Guard] = []
+        self.reentry_guards: list[ReentryGuard] = []
         #: what each tick calls, in order: the parts' runs, a pipelined part's kicker or a guarded part's GuardedTick
         #: in its place (``asyncdonkey.pipeline``)
         self.tick_runs, self.pipelines = build_pipelines(self)
@@ -413,10 +413,10 @@ class Drive:
 
     def _start_heartbeat(self) -> Callable[[float], None] | None:
         """Tell the safety process the ticks begin; its heartbeat, called once a tick (None: no safety process)."""
-        if self.guard is None:
+        if self.safety_process is None:
             return None
-        self.guard.ticking()
-        return self.guard.beat
+        self.safety_process.ticking()
+        return self.safety_process.beat
 
     def _limit_reached(self, max_loops: bool) -> None:
         """The drive ends before its next tick: its tick count is done (``max_loops``) or its duration is up."""
@@ -502,7 +502,7 @@ class Drive:
         loop = self.loop
         now = self.clock.now
         waiter = self.waiter
-        guard = self.guard
+        safety = self.safety_process
         send, throw = ticks.send, ticks.throw
         try:
             step = send(None)
@@ -517,9 +517,9 @@ class Drive:
                     step = send(None)
                     continue
                 try:  # anything raised here is the part's: thrown in where it is awaited, as its call's would be
-                    if guard is not None:  # the loop is free while the part awaits: only its timeout bounds it
+                    if safety is not None:  # the loop is free while the part awaits: only its timeout bounds it
                         timeout = self.current.timeout if self.current is not None else None
-                        guard.beat(math.inf if timeout is None else self.part_started + timeout)
+                        safety.beat(math.inf if timeout is None else self.part_started + timeout)
                     self._awaiting = step
                     result = await step
                 except BaseException as exc:
@@ -579,13 +579,13 @@ class Drive:
             unsafe = getattr(e.part, "unsafe", None) if e.actuator else None
             if unsafe is not None and unsafe.events:
                 r.unsafe_ms[e.name] = unsafe.as_dict()
-        if self.guard is not None:
-            r.safety_process = self.guard.summary
+        if self.safety_process is not None:
+            r.safety_process = self.safety_process.summary
         if self.longest_block is not None:
             r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
         r.shutdown_abandoned = list(self.abandoned)
         r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
-        r.reentries_avoided = {g.name: g.stats() for g in self.guards}
+        r.reentries_avoided = {g.name: g.stats() for g in self.reentry_guards}
         r.pushed = {e.name: reaction.stats() for e, _sub, reaction in self.push_sources if reaction is not None}
         r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
         if self.waiter.precise:  # the window as armed: at most its budget of the period

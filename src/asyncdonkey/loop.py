@@ -302,15 +302,15 @@ class Vehicle:
         self.on = drive.on = True
         outcome: BaseException | None = None
         try:
-            drive.guard = await self._start_safety_process(drive, float(rate_hz))
+            drive.safety_process = await self._start_safety_process(drive, float(rate_hz))
             self._attach_actuators(drive)
             drive.start_background(float(rate_hz))
             await drive.tick_loop(float(rate_hz), max_loop_count, duration, verbose, report_every)
         except BaseException as exc:
             outcome = exc
             report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
-        if drive.guard is not None:
-            drive.guard.ending()
+        if drive.safety_process is not None:
+            drive.safety_process.ending()
         self.on = drive.on = False
         drive.waiter.close()
         drive.unsubscribe_push_sources()
@@ -417,30 +417,30 @@ class Vehicle:
         guarded = watched(r.entry for r in actuators)
         if guarded and not drive.clock.is_virtual:
             drive.watchdog = Watchdog(drive, guarded, drive.clock.now)
-        guard = drive.guard
-        slot = {o.name: i for i, o in enumerate(guard.outputs)} if guard is not None else {}
+        safety = drive.safety_process
+        slot = {o.name: i for i, o in enumerate(safety.outputs)} if safety is not None else {}
         for r in actuators:
             e = r.entry
             record = latency_recorder(drive.profiler, e.name)
             attach = getattr(e.part, "attach", None)
             if callable(attach):
                 i = slot.get(e.name)
-                if guard is not None and i is not None:
-                    attach(ActuatorRuntime(record, drive.watchdog, guard.deadline_setter(i), _last_event(guard, i)))
+                if safety is not None and i is not None:
+                    attach(ActuatorRuntime(record, drive.watchdog, safety.deadline_setter(i), _last_event(safety, i)))
                 else:
                     attach(ActuatorRuntime(record, drive.watchdog))
             else:
                 r.latency = _run_end_latency(record, self.mem.origins, e)
         if drive.watchdog is not None:
-            if guard is not None:
-                drive.watchdog.monitor = guard.check  # the car watches its guard from the watchdog thread
+            if safety is not None:
+                drive.watchdog.monitor = safety.check  # the car watches its guard from the watchdog thread
             drive.watchdog.start()
 
     def _detach_actuators(self, drive: Drive) -> None:
         if drive.watchdog is not None:
             drive.watchdog.stop()
-        if drive.guard is not None:
-            drive.guard.stop()
+        if drive.safety_process is not None:
+            drive.safety_process.stop()
         for e in drive.entries:
             if not e.actuator:
                 continue

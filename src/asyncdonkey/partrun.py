@@ -3,8 +3,8 @@
 A :class:`~asyncdonkey.plan.Entry` is the plan decided at ``add()`` and belongs to the vehicle, which can be
 driven again and again; nothing writes it while a car drives. Everything a drive learns or decides about a part
 lives in its :class:`PartRun`, made fresh when the drive starts and dropped when it ends: the errors counted, the
-timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs trigger, the guard
-that keeps it to one call at a time, and in checked mode its stores with their contract checks. So a second run
+timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs trigger, the re-entry
+guard that keeps it to one call at a time, and in checked mode its stores with their contract checks. So a second run
 starts from the plan as added, and a drive cannot change what the next one does.
 
 Why it also holds copies of the plan's fields the tick reads (``run_condition``, ``args``, ``call``, ...): the tick
@@ -34,7 +34,6 @@ class PartRun:
         "call",
         "entry",
         "errors",
-        "guard",
         "input_origin",
         "inputs",
         "is_sync_inline",
@@ -43,6 +42,7 @@ class PartRun:
         "name",
         "on_error",
         "outputs",
+        "reentry_guard",
         "run_condition",
         "series",
         "store",
@@ -77,5 +77,5 @@ class PartRun:
         self.latency: Callable[[float], None] | None = None
         #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.pipeline``)
         self.kicks: tuple[Any, ...] = ()
-        #: its :class:`~asyncdonkey.pipeline.Guard` when more than one path can be inside its call at once
-        self.guard: Any = None
+        #: its :class:`~asyncdonkey.pipeline.ReentryGuard` when more than one path can be inside its call at once
+        self.reentry_guard: Any = None

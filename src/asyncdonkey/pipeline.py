@@ -25,7 +25,7 @@ output without waiting for the next tick.
 pipelined part's worker, the reactions to a pipelined part or to a push source (a push itself calls no part: it
 stores the source's value and starts the reactions). Only a part that yields while it runs can be caught inside
 its call (an ``async run()``, or a sync one in a worker thread: ``executor=True`` or pipelined), so the drive
-decides when it starts which entries need a :class:`Guard`: a ``react=True`` part that awaits and that a
+decides when it starts which entries need a :class:`ReentryGuard`: a ``react=True`` part that awaits and that a
 pipelined part or a push source feeds (the tick and its reactions can both call it), and an executor part with a
 ``timeout`` (a call that times out leaves its thread running). The others, a sync part on the loop thread above
 all, run as before: the tick does nothing more for them. A call that finds its part busy is never lost and never
@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from .partrun import PartRun
     from .runtypes import PipelineHost
 
-__all__ = ["Guard", "GuardedTick", "Pipeline", "TickKicker", "build_pipelines", "needs_guard"]
+__all__ = ["GuardedTick", "Pipeline", "ReentryGuard", "TickKicker", "build_pipelines", "needs_guard"]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
@@ -141,7 +141,7 @@ class Pipeline:
         """One run on the newest inputs: ``(its end, whether it published)``. A guarded part (an executor part with
         a timeout) is entered through its guard first: a thread its last call's timeout left running keeps it."""
         e = self.run
-        guard = e.guard
+        guard = e.reentry_guard
         if guard is not None and not await guard.enter():
             return self.drive.clock.now(), False  # (only this worker calls it: never coalesced)
         try:
@@ -190,7 +190,7 @@ async def run_reactions(
         cond = e.run_condition
         if cond is not None and not d.get(cond):
             continue
-        guard = e.guard
+        guard = e.reentry_guard
         try:
             if guard is not None:  # the tick or another reaction may be inside its call: one call at a time
                 t_end = await guard.run_stored()
@@ -314,7 +314,7 @@ def needs_guard(e: PartRun, reacting: set[int]) -> bool:
     return e.entry.executor and e.timeout is not None
 
 
-class Guard:
+class ReentryGuard:
     """Keeps one part from being entered while it is still running, for every path that calls it.
 
     A path calls :meth:`enter` before reading the part's inputs and :meth:`leave` after storing its outputs, and
@@ -531,7 +531,7 @@ class GuardedTick:
         "timeout",
     )
 
-    def __init__(self, guard: Guard) -> None:
+    def __init__(self, guard: ReentryGuard) -> None:
         e = self.run = guard.run
         self.name = e.name
         self.run_condition = e.run_condition
@@ -599,20 +599,20 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
 
 
 def guard_entries(drive: PipelineHost, tick: list[Any], pipelines: list[Pipeline]) -> None:
-    """Give each part's run that needs one a fresh :class:`Guard` (every other ``None``), and put a
+    """Give each part's run that needs one a fresh :class:`ReentryGuard` (every other ``None``), and put a
     :class:`GuardedTick` in a guarded part's place in the tick."""
     reacting = {id(r) for p in pipelines for r in p.react}
     reacting.update(
         id(r) for _e, _sub, reaction in drive.push_sources if reaction is not None for r in reaction.entries
     )
-    drive.guards = []
+    drive.reentry_guards = []
     for e in drive.runs:
-        e.guard = Guard(drive, e) if needs_guard(e, reacting) else None
-        if e.guard is not None:
-            drive.guards.append(e.guard)
+        e.reentry_guard = ReentryGuard(drive, e) if needs_guard(e, reacting) else None
+        if e.reentry_guard is not None:
+            drive.reentry_guards.append(e.reentry_guard)
     for i, t in enumerate(tick):
-        if getattr(t, "guard", None) is not None:
-            tick[i] = GuardedTick(t.guard)
+        if getattr(t, "reentry_guard", None) is not None:
+            tick[i] = GuardedTick(t.reentry_guard)
 
 
 def after_store(e: Any, origins: dict[str, float]) -> None:

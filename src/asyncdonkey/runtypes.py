@@ -18,7 +18,7 @@ if TYPE_CHECKING:  # types only: each of these modules imports this one
     from .clock import Clock
     from .memory import Memory
     from .partrun import PartRun
-    from .pipeline import Guard, Reaction
+    from .pipeline import Reaction, ReentryGuard
     from .plan import Entry
     from .safety.watchdog import Watchdog
 
@@ -109,7 +109,7 @@ class PipelineHost(Protocol):
     def on(self) -> bool: ...
 
     #: set by the pipelines' wiring (``guard_entries``)
-    guards: list[Guard]
+    reentry_guards: list[ReentryGuard]
 
     @property
     def push_sources(self) -> list[tuple[PartRun, Callable[..., Any], Reaction | None]]: ...

@@ -101,10 +101,10 @@ class _SignalStop:
         name = signal.Signals(signum).name
         if self.count > 1:
             force_safe_exit(drive, EXIT_INTERRUPTED, f"second {name}")
-        guard = getattr(drive, "guard", None)
-        if guard is not None:  # the safety process ends the car if it has not ended by then
+        safety = getattr(drive, "safety_process", None)
+        if safety is not None:  # the safety process ends the car if it has not ended by then
             grace = drive.stop_grace_s if drive is not None else 1.0
-            guard.exit_requested(time.monotonic() + grace + self.shutdown_deadline_s + EXIT_MARGIN_S)
+            safety.exit_requested(time.monotonic() + grace + self.shutdown_deadline_s + EXIT_MARGIN_S)
         logger.info("received %s: stopping (again to exit at once)", name)
         self.vehicle.stop(name)
         threading.Thread(target=self._enforce, args=(drive,), name="asyncdonkey-stop", daemon=True).start()

@@ -134,8 +134,8 @@ async def test_per_run_state_lives_on_the_drives_runs_not_the_entries():
     runs = seen["runs"]
     assert runs["flaky"].errors == 3 and runs["flaky"].entry is v.parts[3]
     assert runs["pilot"].series is not None and runs["throttle"].latency is not None
-    assert runs["camera"].kicks and runs["throttle"].guard is not None
-    for slot in ("errors", "series", "latency", "kicks", "guard"):
+    assert runs["camera"].kicks and runs["throttle"].reentry_guard is not None
+    for slot in ("errors", "series", "latency", "kicks", "reentry_guard"):
         assert slot not in Entry.__slots__
 
     await v.run(RATE, 3)

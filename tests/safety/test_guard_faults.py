@@ -163,7 +163,7 @@ class Watcher:
 
     @property
     def changes(self) -> list[tuple[float, int]]:
-        return list(self.pca.timeline[self.channel])
+        return list(self.pca.pulse_changes[self.channel])
 
     def first(self, pulse: int, after: float) -> float | None:
         return next((t for t, p in self.changes if p == pulse and t >= after), None)

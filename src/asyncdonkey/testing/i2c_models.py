@@ -172,7 +172,7 @@ class PCA9685Model(RegisterDeviceModel):
 
     Observations: :meth:`pulse` (ticks of 4096 the output is high per period, 0 while asleep or halted),
     :meth:`pulse_us`, :attr:`frequency_hz`, :attr:`running`, :meth:`channel_registers`, :attr:`registers`,
-    :attr:`history` (per channel, every output pulse it took, recorded at each STOP), :attr:`timeline` (the
+    :attr:`history` (per channel, every output pulse it took, recorded at each STOP), :attr:`pulse_changes` (the
     same changes with the model clock's time of the STOP, so a test sees a pulse held for a moment even if it
     could not look at that moment), and counters of what
     the chip ignored: ``prescale_writes_ignored`` (PRE_SCALE written while awake) and ``early_restarts``
@@ -209,7 +209,7 @@ class PCA9685Model(RegisterDeviceModel):
         self.early_restarts = 0
         self._pwm_written = False
         self.history: dict[int, list[int]] = {ch: [0] for ch in range(16)}
-        self.timeline: dict[int, list[tuple[float, int]]] = {ch: [(self.clock(), 0)] for ch in range(16)}
+        self.pulse_changes: dict[int, list[tuple[float, int]]] = {ch: [(self.clock(), 0)] for ch in range(16)}
 
     # -- observations -----------------------------------------------------------------------------------
     @property
@@ -326,7 +326,7 @@ class PCA9685Model(RegisterDeviceModel):
             h = self.history[ch]
             if h[-1] != p:
                 h.append(p)
-                self.timeline[ch].append((self.clock(), p))
+                self.pulse_changes[ch].append((self.clock(), p))
 
 
 class MPU6050Model(RegisterDeviceModel):

@@ -23,6 +23,7 @@ import zenoh
 
 from asyncdonkey.parts.zenoh import zenoh_config
 
+from ..waiting import wait_until
 from .example_loader import load_example
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -76,15 +77,6 @@ class Watch:
         self.session.close()
 
 
-def _wait(cond, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
-
-
 @pytest.mark.realtime
 @pytest.mark.network
 @pytest.mark.subprocess
@@ -98,7 +90,7 @@ def test_car_drives_on_a_remote_pilot_and_stops_when_the_pilot_dies():
         watch = Watch(port)
         pilot = _spawn("examples/remote_pilot.py", "--", "--zenoh-connect", endpoint)
         # the remote pilot's commands open the throttle
-        assert _wait(lambda: any(v > 0 for _, v in watch.get("sim/throttle")), 30), "the remote pilot never drove"
+        wait_until(lambda: any(v > 0 for _, v in watch.get("sim/throttle")), 30, "the remote pilot to drive")
         t_drive = time.monotonic()
         time.sleep(2.0)
         speeds = [v for t, v in watch.get("sim/speed") if t > t_drive + 1.0]

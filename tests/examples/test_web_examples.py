@@ -8,6 +8,7 @@ import pytest
 
 from asyncdonkey.parts.web import WebController
 
+from ..waiting import await_until
 from .example_loader import load_example
 from .test_car_pi import Rig
 
@@ -18,15 +19,6 @@ car_pi = load_example("car_pi")
 def controller_of(vehicle) -> WebController:
     (ctr,) = [e.part for e in vehicle.parts if isinstance(e.part, WebController)]
     return ctr
-
-
-async def wait_until(cond, timeout: float = 5.0, what: str = "condition"):
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not cond():
-        if loop.time() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def test_car_py_web_options():
@@ -44,15 +36,15 @@ async def test_simulated_car_drives_from_the_web_and_stops_when_the_page_goes_qu
     assert ctr.mode == "user"
     drive = asyncio.create_task(v.run(rate_hz=20))
     try:
-        await wait_until(ctr.listening.is_set, 10, "the web controller")
+        await await_until(ctr.listening.is_set, 10, "the web controller")
         async with aiohttp.ClientSession(headers={"Authorization": f"Token {ctr.token}"}) as http:
             for _ in range(6):  # a page's steady commands
                 async with http.post(f"http://127.0.0.1:{ctr.port}/drive", json={"angle": 0, "throttle": 0.6}) as r:
                     assert r.status == 200
                 await asyncio.sleep(0.05)
-            await wait_until(lambda: car.throttle == 0.6, what="the simulated car to get the throttle")
+            await await_until(lambda: car.throttle == 0.6, what="the simulated car to get the throttle")
             # the page goes quiet: the stand-in for the ESC failsafe stops the car, the command itself is unchanged
-            await wait_until(lambda: car.throttle == 0.0, 2, "the stale command to stop the car")
+            await await_until(lambda: car.throttle == 0.0, 2, "the stale command to stop the car")
             assert v.mem["user/throttle"] == 0.6
         assert car.sim.progress > 0
     finally:
@@ -80,7 +72,7 @@ async def test_pi_car_offers_web_or_gamepad(tmp_path):
         ctr.announce = None
         drive = asyncio.create_task(v.run(rate_hz=20))
         try:
-            await wait_until(ctr.listening.is_set, 10, "the web controller")
+            await await_until(ctr.listening.is_set, 10, "the web controller")
             assert ctr.token == token_file.read_text().strip()  # the token of every start, kept for the phone
             base = f"http://127.0.0.1:{ctr.port}"
             async with aiohttp.ClientSession(headers={"Authorization": f"Token {ctr.token}"}) as http:
@@ -88,7 +80,7 @@ async def test_pi_car_offers_web_or_gamepad(tmp_path):
                     assert r.status == 400 and "not available" in (await r.json())["error"]
                 async with http.post(base + "/drive", json={"angle": -1.0, "throttle": 0}) as r:
                     assert r.status == 200
-                await wait_until(lambda: rig.pca.pulse(1) == 460, what="full left on the steering pin")
+                await await_until(lambda: rig.pca.pulse(1) == 460, what="full left on the steering pin")
         finally:
             v.stop()
             await asyncio.wait_for(drive, 15)

@@ -31,6 +31,8 @@ from asyncdonkey.hw.pca9685 import PCA9685, open_pwm_channel, pulse_of
 from asyncdonkey.parts.actuators import PWMSteering, PWMThrottle
 from asyncdonkey.testing.i2c_models import I2CSimulator, MPU6050Model, PCA9685Model
 
+from ..waiting import wait_until
+
 HERE = Path(__file__).resolve().parent
 ASYNCDONKEY = str(Path(sys.executable).with_name("asyncdonkey"))
 THROTTLE, STEERING = 0, 1
@@ -353,15 +355,6 @@ class Car:
         self.proc.communicate(timeout=10)
 
 
-def wait_for(cond, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.002)
-    return True
-
-
 @pytest.mark.subprocess
 @pytest.mark.realtime
 def test_a_second_car_on_the_chip_is_refused_and_after_kill_9_of_the_first_a_new_car_starts(served) -> None:
@@ -398,7 +391,7 @@ def test_a_second_car_on_the_chip_is_refused_and_after_kill_9_of_the_first_a_new
         os.kill(first.proc.pid, signal.SIGKILL)
         first.proc.communicate(timeout=10)
         # its safety process writes the safe pulses; the lock went with the process
-        assert wait_for(lambda: (pca.pulse(THROTTLE), pca.pulse(STEERING)) == (370, 375), 10.0)
+        wait_until(lambda: (pca.pulse(THROTTLE), pca.pulse(STEERING)) == (370, 375), 10.0, step=0.002)
         third = Car(endpoint)
         cars.append(third)
         third.expect_driving()

@@ -4,7 +4,6 @@ against the pty device model (info, health, reset on error, scan watchdog, unplu
 from __future__ import annotations
 
 import asyncio
-import time
 
 import numpy as np
 import pytest
@@ -30,13 +29,7 @@ from asyncdonkey.hw.rplidar import (
 )
 from asyncdonkey.testing.serial_peers import RPLidarPeer
 
-
-async def until(cond, timeout: float = 1.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout} s")
-        await asyncio.sleep(0.002)
+from ..waiting import await_until
 
 
 def run(coro) -> None:
@@ -197,7 +190,7 @@ def test_driver_talks_the_protocol_and_publishes_complete_scans():
         with RPLidarPeer(points_per_scan=120, scan_hz=10.0) as peer:
             driver = RPLidarDriver(peer.path)
             task = asyncio.create_task(driver.run())
-            await until(lambda: driver.latest.sample is not None and driver.latest.sample.seq >= 2)
+            await await_until(lambda: driver.latest.sample is not None and driver.latest.sample.seq >= 2)
             # STOP, GET_INFO, GET_HEALTH, SCAN: exactly these bytes, in this order
             assert bytes(peer.received) == bytes.fromhex("a525a550a552a520")
             assert driver.info == DeviceInfo(0x18, (1, 29), 7, "000102030405060708090A0B0C0D0E0F")
@@ -210,7 +203,7 @@ def test_driver_talks_the_protocol_and_publishes_complete_scans():
             assert driver.protocol.bad_nodes == 0
             await driver.close()
             await asyncio.wait_for(task, 1)
-            await until(lambda: peer.requests[-1][0] == CMD_STOP)
+            await await_until(lambda: peer.requests[-1][0] == CMD_STOP)
             assert not peer.scanning
 
     run(body())
@@ -222,13 +215,13 @@ def test_error_health_triggers_reset_then_scanning_once_healthy():
         with RPLidarPeer(points_per_scan=60, health=(2, 0x0102)) as peer:
             driver = RPLidarDriver(peer.path, response_timeout_s=0.2, reset_wait_s=0.05)
             task = asyncio.create_task(driver.run())
-            await until(lambda: driver.session_failures >= 1)
+            await await_until(lambda: driver.session_failures >= 1)
             cmds = [c for c, _ in peer.requests]
             assert cmds[:5] == [CMD_STOP, CMD_GET_INFO, CMD_GET_HEALTH, CMD_RESET, CMD_GET_HEALTH]
             assert CMD_SCAN not in cmds
             assert driver.protocol.garbage_bytes >= len(RPLidarPeer.BANNER)  # the reset banner was skipped
             peer.health = (0, 0)
-            await until(lambda: driver.latest.sample is not None, timeout=2.0)
+            await await_until(lambda: driver.latest.sample is not None, timeout=2.0)
             assert driver.health == Health(0, 0)
             await driver.close()
             await asyncio.wait_for(task, 1)
@@ -242,10 +235,10 @@ def test_watchdog_restarts_a_stalled_scan():
         with RPLidarPeer(points_per_scan=60, scan_hz=10.0) as peer:
             driver = RPLidarDriver(peer.path, watchdog_s=0.15)
             task = asyncio.create_task(driver.run())
-            await until(lambda: driver.latest.sample is not None)
+            await await_until(lambda: driver.latest.sample is not None)
             peer.stall()
             before = driver.latest.sample.seq
-            await until(lambda: driver.restarts == 1 and driver.latest.sample.seq > before, timeout=2.0)
+            await await_until(lambda: driver.restarts == 1 and driver.latest.sample.seq > before, timeout=2.0)
             assert [c for c, _ in peer.requests].count(CMD_SCAN) == 2
             await driver.close()
             await asyncio.wait_for(task, 1)
@@ -260,13 +253,13 @@ def test_unplug_and_replug_resumes_scanning():
             driver = RPLidarDriver(peer.path)
             driver.port.backoff_initial_s = 0.02
             task = asyncio.create_task(driver.run())
-            await until(lambda: driver.latest.sample is not None)
+            await await_until(lambda: driver.latest.sample is not None)
             peer.unplug()
-            await until(lambda: driver.port.disconnects == 1)
+            await await_until(lambda: driver.port.disconnects == 1)
             assert driver.protocol.scanning is False
             seq = driver.latest.sample.seq
             peer.plug()
-            await until(lambda: driver.latest.sample.seq >= seq + 2, timeout=2.0)
+            await await_until(lambda: driver.latest.sample.seq >= seq + 2, timeout=2.0)
             cmds = [c for c, _ in peer.requests]
             assert cmds == [CMD_STOP, CMD_GET_INFO, CMD_GET_HEALTH, CMD_SCAN] * 2
             assert driver.port.connects == 2 and driver.session_failures == 0

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import time
 from collections.abc import Awaitable, Callable
 
 import pytest
@@ -20,6 +19,8 @@ from asyncdonkey.clock import get_clock
 from asyncdonkey.hw.serial_port import LineFramer, SerialPort, SerialPortClosed
 from asyncdonkey.testing import VirtualClockLoop
 from asyncdonkey.testing.serial_peers import LinePeer, PtyPeer
+
+from ..waiting import await_until
 
 LOOPS = [
     pytest.param(asyncio.SelectorEventLoop, id="asyncio"),
@@ -33,12 +34,9 @@ def run_on(loop_factory: Callable[[], asyncio.AbstractEventLoop], coro: Awaitabl
 
 
 async def until(cond: Callable[[], bool], timeout: float = 0.5) -> None:
-    """Wait in real time (yielding to the loop) until ``cond()``; fail after ``timeout`` real seconds."""
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout:.2f} s")
-        await asyncio.sleep(0.001 if not get_clock().is_virtual else 0)
+    """:func:`await_until` with this file's step: on the virtual clock a bare yield between checks, since a sleep
+    there would move virtual time past the device's answer."""
+    await await_until(cond, timeout, step=0 if get_clock().is_virtual else 0.001)
 
 
 class Echo(LinePeer):

@@ -21,7 +21,8 @@ from asyncdonkey.parts.zenoh import ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import JSON, encode, pack_attachment
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
-from .zenoh_loopback import PulseProbe, until
+from ..waiting import await_until
+from .zenoh_loopback import PulseProbe
 
 pytestmark = [pytest.mark.realtime, pytest.mark.network]
 
@@ -80,7 +81,7 @@ _BLOCK = {"congestion_control": zenoh.CongestionControl.BLOCK}
 
 async def _route_up(sub: ZenohSubscriber, sender: Sender, value: float = 0.5) -> None:
     """Good values until one arrives (declaring the subscription on the other side takes a moment)."""
-    assert await until(lambda: (sender.good(value), sub.received > 0)[1])
+    await await_until(lambda: (sender.good(value), sub.received > 0)[1])
     n = await _settled(lambda: sub.received)
     assert n > 0
 
@@ -105,7 +106,7 @@ async def test_a_bad_value_is_refused_counted_and_the_last_good_one_kept(link_pa
     assert before.get("refused", 0) == 0 and sub.run() == 0.25
     origin = sub.output_origin()
     sender.bad(payload, encoding)
-    assert await until(lambda: sub.counters().get("refused") == 1 or sub.run() != 0.25), name
+    await await_until(lambda: sub.counters().get("refused") == 1 or sub.run() != 0.25, what=f"{name} refused or stored")
     # not stored: the last good value stays, with its old origin (it keeps ageing: the failsafe decides)
     assert sub.run() == 0.25 and sub.output_origin() == origin
     assert sub.refused == {CH: {reason: 1}}
@@ -113,7 +114,7 @@ async def test_a_bad_value_is_refused_counted_and_the_last_good_one_kept(link_pa
     assert after["received"] == before["received"] and after["unexpected"] == 0
     # the next good value is taken, and the refused sample's number was seen: no gap, nothing lost
     sender.good(0.3)
-    assert await until(lambda: sub.run() == 0.3)
+    await await_until(lambda: sub.run() == 0.3)
     assert sub.counters()["lost"] == 0 and sub.counters()["out_of_order"] == 0
     sub.shutdown()
 
@@ -128,7 +129,7 @@ async def test_a_refused_sample_is_not_counted_as_lost(link_pair):
     for payload, encoding in [(b"0.5", "application/xml"), (b"{", JSON), (b"", JSON), (None, "delete"), (b"NaN", JSON)]:
         sender.bad(payload, encoding)
     sender.good(0.1)
-    assert await until(lambda: sub.run() == 0.1)
+    await await_until(lambda: sub.run() == 0.1)
     counters = sub.counters()
     assert counters["lost"] == 0 and counters["out_of_order"] == 0
     assert counters["refused"] == 5 and counters["malformed"] == 2
@@ -144,7 +145,7 @@ async def test_refusals_are_logged_rate_limited_per_channel_and_reason(link_pair
         for _ in range(50):
             sender.bad(b"NaN", JSON)
         sender.bad(b"[1]", JSON)
-        assert await until(lambda: sub.counters()["refused"] == 51)
+        await await_until(lambda: sub.counters()["refused"] == 51)
     assert sub.refused == {CH: {"nan": 50, "type": 1}}
     lines = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
     assert len(lines) == 2  # one per (channel, reason) per 5 s, whatever the flood
@@ -166,7 +167,7 @@ async def test_the_cars_own_contracts_apply_once_the_subscriber_is_added(link_pa
     sender = Sender(peer, "sim/gain")
     await _route_up(sub, sender, 1.0)
     sender.good(5.0)
-    assert await until(lambda: own.run() == 5.0 and sub.counters()["refused"] == 1)
+    await await_until(lambda: own.run() == 5.0 and sub.counters()["refused"] == 1)
     assert sub.run() == 1.0 and sub.refused == {"sim/gain": {"range": 1}}
     assert own.refused == {}
 

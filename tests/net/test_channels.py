@@ -13,7 +13,8 @@ from asyncdonkey.parts.zenoh import ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import pack_attachment
 from asyncdonkey.parts.zenoh.parts import covering_key
 
-from .zenoh_loopback import RemotePilotCar, until
+from ..waiting import await_until
+from .zenoh_loopback import RemotePilotCar
 
 
 @pytest.mark.realtime
@@ -29,11 +30,11 @@ async def test_channels_arrive_under_prefix_with_their_values(link_pair):
     # the route is up once something arrives: declaring the subscription on the other side takes a moment,
     # longer on a loaded machine, and a value published before that is not delivered
     blank = np.zeros_like(img)
-    assert await until(lambda: (pub.run(0.0, 0.0, blank, "user", 0.0, 0.0, 0.0, 0.0), sub.received >= 4)[1])
+    await await_until(lambda: (pub.run(0.0, 0.0, blank, "user", 0.0, 0.0, 0.0, 0.0), sub.received >= 4)[1])
     await asyncio.sleep(0.1)  # the last of those arrive
     before = sub.received
     pub.run(-0.25, 0.5, img, "local", 0.0, 0.0, 0.0, 0.0)
-    assert await until(lambda: sub.received == before + 4)
+    await await_until(lambda: sub.received == before + 4)
     angle, throttle, frame, mode = sub.run()
     assert (angle, throttle, mode) == (-0.25, 0.5, "local")
     np.testing.assert_array_equal(frame, img)
@@ -49,15 +50,15 @@ async def test_newest_value_wins_and_overwritten_values_count_as_dropped(link_pa
     car, pilot = link_pair()
     sub = ZenohSubscriber(car, ["pilot/throttle"])
     pub = ZenohPublisher(pilot, ["pilot/throttle"])
-    assert await until(lambda: (pub.run(0.0, 0.0), sub.received > 0)[1])  # the route is up
+    await await_until(lambda: (pub.run(0.0, 0.0), sub.received > 0)[1])  # the route is up
     await asyncio.sleep(0.1)
     sub.run()
     before = sub.counters()
     for k in range(1, 11):
         pub.run(k / 10, 0.0)
-    assert await until(lambda: sub.received == before["received"] + 10), (
-        list(before.values()),
-        list(sub.counters().values()),
+    await await_until(
+        lambda: sub.received == before["received"] + 10,
+        what=lambda: f"10 more received: counters {list(before.values())} before, {list(sub.counters().values())} now",
     )
     assert sub.run() == 1.0
     assert sub.dropped - before["dropped"] == 9 and sub.lost == 0 and sub.out_of_order == 0
@@ -78,14 +79,14 @@ async def test_sequence_gaps_old_samples_and_late_arrivals_are_counted(link_pair
     for seq, age in [(1, 0.0), (2, 0.0), (5, 0.0), (4, 0.0), (6, 0.5)]:
         att = pack_attachment(age, seq, source=1)
         _put(pilot, key, b"%d" % seq, encoding="application/json", attachment=att)
-    assert await until(lambda: sub.received + sub.out_of_order == 5)
+    await await_until(lambda: sub.received + sub.out_of_order == 5)
     assert sub.run() == 6
     assert (sub.lost, sub.out_of_order, sub.late) == (2, 1, 1)
     # the sender restarts: a new source numbering from 1 again (and its first sample may be lost)
     for seq in (2, 3):
         att = pack_attachment(0, seq, source=2)
         _put(pilot, key, b"%d" % (100 + seq), encoding="application/json", attachment=att)
-    assert await until(lambda: sub.run() == 103)
+    await await_until(lambda: sub.run() == 103)
     assert sub.restarts == 1 and sub.out_of_order == 1
 
 
@@ -99,11 +100,11 @@ async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link
     await asyncio.sleep(0.2)
     with caplog.at_level(logging.WARNING, logger="asyncdonkey.parts.zenoh.parts"):
         _put(stranger, "cars/c1/pilot/throttle", b"1.0")  # no age attachment: not ours
-        assert await until(lambda: sub.unexpected == 1)
+        await await_until(lambda: sub.unexpected == 1)
         _put(stranger, "cars/c1/sim/cte", b"1.0", attachment=pack_attachment(0, 1))  # not listened to
         for k in range(20):  # a peer spraying keys
             _put(stranger, f"cars/c1/pilot/x{k}", b"1.0", attachment=pack_attachment(0, 1))
-        assert await until(lambda: sub.unexpected == 21)
+        await await_until(lambda: sub.unexpected == 21)
         await asyncio.sleep(0.1)
     assert sub.unexpected == 21
     assert sub.run() == (None, None) and sub.received == 0
@@ -111,7 +112,7 @@ async def test_only_configured_keys_are_taken_others_are_counted_and_logged(link
     assert len(lines) == 1  # rate-limited whatever the keys: one line per 5 s
     assert "'cars/c1/pilot/throttle'" in lines[0] and "no age attachment" in lines[0]
     _put(stranger, "cars/c1/pilot/mode", b"1.0", attachment=pack_attachment(0, 1))
-    assert await until(lambda: sub.unexpected == 22)
+    await await_until(lambda: sub.unexpected == 22)
 
 
 @pytest.mark.network
@@ -131,14 +132,14 @@ async def test_received_age_is_sender_age_plus_transit(link_pair):
     sub = ZenohSubscriber(car, ["cam/image_array"], ping_every_s=0.05)
     pub = ZenohPublisher(pilot, ["cam/image_array"])
     task = asyncio.create_task(sub.update())
-    assert await until(lambda: car.pongs_received >= 3)
+    await await_until(lambda: car.pongs_received >= 3)
     await asyncio.sleep(0.15)
     rtt_min, _ = car.rtt_s()
     assert 0 < rtt_min < 0.05 and car.transit_s == pytest.approx(rtt_min / 2)
     frame = np.zeros((120, 160, 3), np.uint8)
     t_send = time.monotonic()
     pub.run(frame, 0.2)  # sensed 200 ms before it was sent
-    assert await until(lambda: sub.received == 1)
+    await await_until(lambda: sub.received == 1)
     t_seen = time.monotonic()
     sub.run()
     origin = sub.output_origin()
@@ -167,7 +168,7 @@ async def test_on_change_sends_changes_and_a_keepalive(link_pair):
     await asyncio.sleep(0.06)
     pub.run("local", 0.0)  # unchanged, but the keepalive is due
     assert pub.sent == 3
-    assert await until(lambda: sub.received == 3)
+    await await_until(lambda: sub.received == 3)
 
 
 def test_covering_key():
@@ -309,14 +310,14 @@ async def test_a_value_with_no_sensing_behind_it_is_never_sent_as_fresh(link_pai
     car, pilot = link_pair()
     sub = ZenohSubscriber(car, ["pilot/throttle"])
     pub = ZenohPublisher(pilot, ["pilot/throttle"])
-    assert await until(lambda: (pub.run(0.0, 0.0), sub.received > 0)[1])  # the route is up
+    await await_until(lambda: (pub.run(0.0, 0.0), sub.received > 0)[1])  # the route is up
     await asyncio.sleep(0.1)
     before = sub.received
     pub.run(0.9, float("inf"))
     pub.run(0.8, float("nan"))
     assert pub.unaged == 2
     pub.run(0.1, 0.05)
-    assert await until(lambda: sub.received == before + 1)
+    await await_until(lambda: sub.received == before + 1)
     assert sub.run() == 0.1
     assert any("has no sensing behind it" in r.getMessage() for r in caplog.records)
     pub.shutdown()

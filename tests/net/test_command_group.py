@@ -16,7 +16,7 @@ from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohPublisher, ZenohSubscriber
 from asyncdonkey.parts.zenoh.codec import GROUP, CodecError, decode_group, encode_group, pack_attachment
 
-from .zenoh_loopback import until
+from ..waiting import await_until
 
 pytestmark = [pytest.mark.network]
 
@@ -117,7 +117,7 @@ async def test_a_group_with_one_bad_half_is_refused_whole(link_pair):
         att = pack_attachment(0.0, seq, 7)
         peer.session.put(key, payload, encoding=encoding, attachment=att, congestion_control=_BLOCK)
 
-    assert await until(lambda: (put(b'{"pilot/angle": 0.1, "pilot/throttle": 0.2}'), sub.received > 0)[1])
+    await await_until(lambda: (put(b'{"pilot/angle": 0.1, "pilot/throttle": 0.2}'), sub.received > 0)[1])
     await asyncio.sleep(0.1)
     assert sub.run() == (0.1, 0.2)
     put(b'{"pilot/angle": -0.9, "pilot/throttle": NaN}')  # a new angle with a NaN throttle
@@ -126,7 +126,7 @@ async def test_a_group_with_one_bad_half_is_refused_whole(link_pair):
     put(b'{"pilot/angle": 0.0, "pilot/throttle": 0.0}', "application/json;group;v=9")
     peer.session.delete(key, attachment=pack_attachment(0.0, seq + 1, 7), congestion_control=_BLOCK)
     seq += 1
-    assert await until(lambda: sub.counters()["refused"] == 5), sub.refused
+    await await_until(lambda: sub.counters()["refused"] == 5, what=lambda: f"5 refused (so far {sub.refused})")
     assert sub.refused == {
         "pilot/throttle": {"nan": 1},
         "pilot/angle": {"type": 1},
@@ -134,7 +134,7 @@ async def test_a_group_with_one_bad_half_is_refused_whole(link_pair):
     }
     assert sub.run() == (0.1, 0.2)  # neither half of a bad command was stored
     put(b'{"pilot/angle": 0.3, "pilot/throttle": 0.4}')
-    assert await until(lambda: sub.run() == (0.3, 0.4))
+    await await_until(lambda: sub.run() == (0.3, 0.4))
     assert sub.counters()["lost"] == 0
     assert set(sub.ages()) == set(CMD) and len(set(sub.ages().values())) == 1
 

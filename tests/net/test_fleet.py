@@ -11,7 +11,8 @@ from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import ZenohLink, zenoh_config
 from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher, render_fleet, top_main
 
-from .zenoh_loopback import free_port, listener, until
+from ..waiting import await_until
+from .zenoh_loopback import free_port, listener
 
 
 class Busy:
@@ -53,7 +54,7 @@ async def test_two_cars_publish_status_and_the_view_shows_both():
         va, status_a = _car(a, "local")
         vb, status_b = _car(b, "user")
         await asyncio.gather(va.run(rate_hz=50, duration=0.6), vb.run(rate_hz=20, duration=0.6))
-        assert await until(lambda: len(watcher.snapshot()) == 2)
+        await await_until(lambda: len(watcher.snapshot()) == 2)
         assert status_a.published >= 4 and status_b.published >= 4
         cars = watcher.snapshot()
         doc = cars["cars/alpha"][0]

@@ -23,6 +23,7 @@ from asyncdonkey.clock import get_clock
 from asyncdonkey.parts.zenoh.batch_infer import BatchPilot, dynamic_batch_onnx
 from asyncdonkey.parts.zenoh.batcher import BatchLoop, Frame, FrameBatcher
 
+from ..waiting import wait_until
 from .fleet_car import SCRIPT, FleetProcess, record_sim_frames
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -223,15 +224,6 @@ def test_gpu_on_a_machine_without_cuda_warns_and_runs_on_the_cpu(batchable, capl
 
 
 # -- the fleet, as processes on loopback -----------------------------------------------------------------------
-def _wait(cond, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
-
-
 @pytest.mark.realtime
 @pytest.mark.network
 @pytest.mark.subprocess
@@ -271,7 +263,12 @@ def test_a_fleet_drives_on_one_server_and_stops_when_it_dies(tmp_path, frames, b
     everyone = [*procs, flood, foreign]
     try:
         driving = lambda: all(p.of("driving") for p in [*procs, flood])  # noqa: E731
-        assert _wait(driving, 45), "not every car drove: " + "".join(p.lines[-1] if p.lines else "" for p in everyone)
+        wait_until(
+            driving,
+            45,
+            lambda: "every car to drive: " + "".join(p.lines[-1] if p.lines else "" for p in everyone),
+            0.05,
+        )
         t_all = max(p.of("driving")[0]["t"] for p in [*procs, flood])
         time.sleep(3.0)  # all five drive on the server, the flooder at 200 frames/s
         t_kill = time.monotonic()
@@ -339,7 +336,8 @@ async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_pat
     from asyncdonkey.parts.zenoh.link import zenoh_config
     from asyncdonkey.parts.zenoh.pairing import make_fleet
 
-    from .zenoh_loopback import free_port, until
+    from ..waiting import await_until
+    from .zenoh_loopback import free_port
 
     files = make_fleet(
         tmp_path, cars=["car1", "car2"], server="gpu", server_hosts=["127.0.0.1"], port=free_port(),
@@ -367,7 +365,7 @@ async def test_with_the_fleet_configs_no_car_commands_or_watches_another(tmp_pat
             cam2.run(frame, 0.0)
             return sub1.received >= 5 and sub2.received >= 5 and watcher.received >= 5
 
-        assert await until(lambda: drive(), timeout=10)  # both cars drive on the server; the view watches car2
+        await await_until(lambda: drive(), timeout=10)  # both cars drive on the server; the view watches car2
         assert sub1.run() == (0.1, 0.5) and sub2.run() == (0.1, 0.5)
         # the server stops answering; then car1 and the view command car2: full throttle, hard left
         server.stop()

@@ -16,7 +16,8 @@ from asyncdonkey.parts.zenoh.certs import certificate_problems
 from asyncdonkey.parts.zenoh.link import zenoh_config
 from asyncdonkey.parts.zenoh.pairing import make_fleet, make_pair
 
-from .zenoh_loopback import free_port, until
+from ..waiting import await_until
+from .zenoh_loopback import free_port
 
 CMD = ["pilot/angle", "pilot/throttle"]
 AHEAD = datetime.timedelta(hours=1)
@@ -127,7 +128,7 @@ async def test_a_fleet_server_and_car_whose_certificates_are_not_valid_yet_say_w
                 if "'cars/car1/cam/image_array'" in r.getMessage() and "connected to no other" in r.getMessage()
             ]
 
-        assert await until(lambda: len(server_said()) == 1, timeout=2.0)
+        await await_until(lambda: len(server_said()) == 1, timeout=2.0)
         assert "gpu-cert.pem is not valid until" in server_said()[0]  # its certificates checked again
         assert server.counters()["car1"]["answered"] == 0
     finally:
@@ -159,14 +160,14 @@ async def test_a_connected_subscriber_that_hears_nothing_says_so_once_and_again_
     commands = ZenohSubscriber(car, CMD, group=PILOT_COMMAND, ping_every_s=0, silent_after_s=0.3)
     watching = asyncio.ensure_future(commands.update())
     try:
-        assert await until(lambda: commands.silences == 1, timeout=3.0)
+        await await_until(lambda: commands.silences == 1, timeout=3.0)
         await asyncio.sleep(0.4)  # still silent: said once
         lines = [r.getMessage() for r in caplog.records]
         assert len(lines) == 1 and commands.silences == 1
         assert "nothing on 'cars/c1/pilot/command'" in lines[0]
         assert "connected to 1 other Zenoh session(s)" in lines[0] and "access rules" in lines[0]
         sender = ZenohPublisher(pilot, CMD, group=PILOT_COMMAND)
-        assert await until(lambda: (sender.run(0.0, 0.2, 0.0, 0.0), "samples arrive again" in caplog.text)[1])
+        await await_until(lambda: (sender.run(0.0, 0.2, 0.0, 0.0), "samples arrive again" in caplog.text)[1])
         assert commands.run() == (0.0, 0.2)
     finally:
         watching.cancel()

@@ -17,7 +17,8 @@ from asyncdonkey import Vehicle
 from asyncdonkey.parts.zenoh import ZenohLink, ZenohPublisher, ZenohSubscriber, zenoh_config
 from asyncdonkey.parts.zenoh.fleet import FleetStatus, FleetWatcher
 
-from .zenoh_loopback import RemotePilotCar, connector, free_port, until
+from ..waiting import await_until
+from .zenoh_loopback import RemotePilotCar, connector, free_port
 
 pytestmark = [pytest.mark.realtime, pytest.mark.network]
 
@@ -68,15 +69,15 @@ async def test_each_car_gets_its_own_pilots_commands_through_the_router_with_tru
     pings = [asyncio.create_task(sub_a.update()), asyncio.create_task(sub_b.update())]
     try:
         # the routes are up once something arrives (a subscription takes a moment to reach the router)
-        assert await until(lambda: (pub_a.run(0.0, 0.0, 0.0, 0.0), sub_a.received >= 2)[1])
-        assert await until(lambda: (pub_b.run(0.0, 0.0, 0.0, 0.0), sub_b.received >= 2)[1])
-        assert await until(lambda: alpha.pongs_received >= 3 and bravo.pongs_received >= 3)
+        await await_until(lambda: (pub_a.run(0.0, 0.0, 0.0, 0.0), sub_a.received >= 2)[1])
+        await await_until(lambda: (pub_b.run(0.0, 0.0, 0.0, 0.0), sub_b.received >= 2)[1])
+        await await_until(lambda: alpha.pongs_received >= 3 and bravo.pongs_received >= 3)
         await asyncio.sleep(0.1)  # the last warm-up values arrive
         before_a, before_b = sub_a.received, sub_b.received
         t_send = time.monotonic()
         pub_a.run(0.25, 0.5, 0.1, 0.1)  # alpha's pilot: sensed 100 ms before it was sent
         pub_b.run(-0.75, 0.2, 0.0, 0.0)
-        assert await until(lambda: sub_a.received == before_a + 2 and sub_b.received == before_b + 2)
+        await await_until(lambda: sub_a.received == before_a + 2 and sub_b.received == before_b + 2)
         t_seen = time.monotonic()
         assert sub_a.run() == (0.25, 0.5) and sub_b.run() == (-0.75, 0.2)  # each car its own pilot's
         assert sub_a.counters()["unexpected"] == 0 and sub_b.counters()["unexpected"] == 0
@@ -113,7 +114,7 @@ async def test_the_fleet_view_hears_every_car_through_the_router(router):
             v.add(FleetStatus(router.client(name), v, every_s=0.1), inputs=["user/mode", "tub/num_records"])
             cars.append(v)
         await asyncio.gather(*(v.run(rate_hz=20, duration=0.8) for v in cars))
-        assert await until(lambda: len(watcher.snapshot()) == 2)
+        await await_until(lambda: len(watcher.snapshot()) == 2)
         seen = watcher.snapshot()
         assert seen["cars/alpha"][0]["mode"] == "local" and seen["cars/bravo"][0]["mode"] == "user"
         assert all(doc["ticks"] > 5 for doc, _ in seen.values())

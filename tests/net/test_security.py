@@ -19,7 +19,8 @@ from asyncdonkey.parts.zenoh import PILOT_COMMAND, ZenohLink, ZenohPublisher, Ze
 from asyncdonkey.parts.zenoh.link import exposure, link_config
 from asyncdonkey.parts.zenoh.pairing import make_pair
 
-from .zenoh_loopback import free_port, until
+from ..waiting import await_until
+from .zenoh_loopback import free_port
 
 CMD = ["pilot/angle", "pilot/throttle"]
 
@@ -88,9 +89,9 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
         plain_pub = ZenohPublisher(plain, CMD)
         update = asyncio.create_task(sub.update())
         # the allowed pilot drives (and its pongs reach the car: the round trip is allowed too)
-        assert await until(lambda: (pilot_pub.run(0.1, 0.4, 0, 0), sub.received >= 2)[1])
+        await await_until(lambda: (pilot_pub.run(0.1, 0.4, 0, 0), sub.received >= 2)[1])
         assert sub.run() == (0.1, 0.4)
-        assert await until(lambda: car.pongs_received > 0)
+        await await_until(lambda: car.pongs_received > 0)
         received = await _settled(lambda: sub.received)  # the pilot's last puts have landed
         # everyone else tries for half a second: full throttle, hard left
         for _ in range(25):
@@ -102,14 +103,14 @@ async def test_only_the_paired_pilot_commands_the_car_and_views_still_read(pair)
         # ... and they cannot publish other keys of the car either (the rules drop them before the process)
         view.session.put("cars/car1/user/throttle", b"1.0")
         # the fleet view still reads the car's telemetry
-        assert await until(lambda: (telemetry.run(0.05, 0.0), view_sub.received > 0)[1])
+        await await_until(lambda: (telemetry.run(0.05, 0.0), view_sub.received > 0)[1])
         assert view_sub.run() == 0.05
         # the allowed pilot still drives after all that
-        assert await until(lambda: (pilot_pub.run(0.0, 0.2, 0, 0), sub.run() == (0.0, 0.2))[1])
+        await await_until(lambda: (pilot_pub.run(0.0, 0.2, 0, 0), sub.run() == (0.0, 0.2))[1])
         assert sub.unexpected == 0
         # the one-sample command (pilot/command) is the pilot's alone as well
         groups = {who: ZenohPublisher(who, CMD, group=PILOT_COMMAND) for who in (pilot, view, impostor, plain)}
-        assert await until(lambda: (groups[pilot].run(0.3, 0.5, 0, 0), one_sample.run() == (0.3, 0.5))[1])
+        await await_until(lambda: (groups[pilot].run(0.3, 0.5, 0, 0), one_sample.run() == (0.3, 0.5))[1])
         taken = await _settled(lambda: one_sample.received)
         for _ in range(25):
             for who in (view, impostor, plain):

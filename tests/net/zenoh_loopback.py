@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
 import math
 import socket
 import time
-from collections.abc import Callable
 
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.actuators import PWMThrottle
@@ -26,16 +24,6 @@ def listener(port: int):
 
 def connector(port: int, mode: str = "client"):
     return zenoh_config(mode=mode, connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-
-
-async def until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
-    """Poll ``cond`` until true or ``timeout`` seconds (network arrival is asynchronous), letting tasks run."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        await asyncio.sleep(0.005)
-    return cond()
 
 
 class RemotePilot:

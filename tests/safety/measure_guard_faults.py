@@ -13,7 +13,8 @@ import time
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]))
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
-from tests.safety.test_guard_faults import STOPPED, Car, Watcher, alive, the_guard, wait_for
+from tests.safety.test_guard_faults import STOPPED, Car, Watcher, alive, the_guard
+from tests.waiting import time_when
 
 
 def rig():
@@ -32,9 +33,9 @@ def nack():
     sim.bus(1).nack(0x41, times=None)
     t = time.monotonic()
     os.kill(car.proc.pid, 9)
-    s = wait_for(lambda: a.pulse(0) == STOPPED, 5)
+    s = time_when(lambda: a.pulse(0) == STOPPED, 5)
     sim.bus(1).clear_faults()
-    wait_for(lambda: not alive(g), 5)
+    time_when(lambda: not alive(g), 5)
     car.kill()
     sim.close()
     return s - t
@@ -48,7 +49,7 @@ def lost(sig):
     g = the_guard(car)
     t = time.monotonic()
     os.kill(g, sig)
-    wait_for(lambda: w.first(STOPPED, t) is not None, 3)
+    time_when(lambda: w.first(STOPPED, t) is not None, 3)
     s = w.first(STOPPED, t)
     car.proc.send_signal(signal.SIGINT)
     car.wait(10)
@@ -63,7 +64,7 @@ def sighup():
     car.expect("driving")
     t = time.monotonic()
     car.proc.send_signal(signal.SIGHUP)
-    s = wait_for(lambda: a.pulse(0) == STOPPED, 5)
+    s = time_when(lambda: a.pulse(0) == STOPPED, 5)
     car.wait(10)
     x = time.monotonic()
     sim.close()
@@ -78,7 +79,7 @@ def sigint_frozen():
     os.kill(g, signal.SIGSTOP)
     t = time.monotonic()
     car.proc.send_signal(signal.SIGINT)
-    s = wait_for(lambda: a.pulse(0) == STOPPED, 5)
+    s = time_when(lambda: a.pulse(0) == STOPPED, 5)
     car.wait(10)
     x = time.monotonic()
     sim.close()
@@ -90,7 +91,7 @@ def sigint_gil():
     car = Car(sim.endpoint, "regex-forever")
     car.expect("driving")
     h = car.expect("hang")
-    s = wait_for(lambda: a.pulse(0) == STOPPED, 5)
+    s = time_when(lambda: a.pulse(0) == STOPPED, 5)
     time.sleep(0.3)
     t = time.monotonic()
     car.proc.send_signal(signal.SIGINT)

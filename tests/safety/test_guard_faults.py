@@ -27,6 +27,8 @@ import pytest
 
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
+from ..waiting import time_when
+
 pytestmark = [pytest.mark.realtime, pytest.mark.subprocess]
 
 CAR = Path(__file__).with_name("guarded_car.py")
@@ -43,17 +45,6 @@ def chips() -> Iterator[tuple[I2CSimulator, PCA9685Model, PCA9685Model]]:
     sim.serve()
     yield sim, pca40, pca41
     sim.close()
-
-
-def wait_for(cond: Callable[[], bool], timeout: float, step: float = 0.001) -> float | None:
-    end = time.monotonic() + timeout
-    while True:
-        now = time.monotonic()
-        if cond():
-            return now
-        if now > end:
-            return None
-        time.sleep(step)
 
 
 class Lines:
@@ -187,8 +178,9 @@ def test_kill_9_with_the_steering_chip_nacking_stops_the_throttle_at_once(chips,
     sim.bus(1).nack(0x41, times=None)
     killed = time.monotonic()
     os.kill(car.proc.pid, signal.SIGKILL)
-    stopped = wait_for(lambda: pca40.pulse(THROTTLE) == STOPPED, 5.0)
-    assert stopped is not None, f"throttle still {pca40.pulse(THROTTLE)} 5 s after kill -9"
+    stopped = time_when(
+        lambda: pca40.pulse(THROTTLE) == STOPPED, 5.0, lambda: f"the throttle stopped (still {pca40.pulse(THROTTLE)})"
+    )
     assert stopped - killed < 1.0  # typical: under 20 ms
     not_safe = car.err.wait(lambda ln: "NOT safe" in ln, 3.0)
     assert not_safe is not None, car.err.text()
@@ -199,10 +191,10 @@ def test_kill_9_with_the_steering_chip_nacking_stops_the_throttle_at_once(chips,
     assert pca41.pulse(STEERING) == 332  # truly not safe: the chip still shows the driving angle
     # the chip answers again: the steering lands, and only now does the log say every output is safe
     sim.bus(1).clear_faults(0x41)
-    assert wait_for(lambda: pca41.pulse(STEERING) == CENTRE, 5.0) is not None
+    time_when(lambda: pca41.pulse(STEERING) == CENTRE, 5.0)
     done = car.err.wait(lambda ln: "every output written to its safe state" in ln, 5.0)
     assert done is not None, car.err.text()
-    assert wait_for(lambda: not alive(guard), 5.0, 0.02) is not None  # and the guard ends
+    time_when(lambda: not alive(guard), 5.0, "the guard to end", 0.02)  # and the guard ends
 
 
 # ------------------------------------------------------------------ the car watches its guard
@@ -223,18 +215,19 @@ def test_a_lost_guard_is_noticed_the_throttle_stopped_and_a_new_guard_started(ch
     lost = car.err.wait(lambda ln: f"safety process {old} " in ln and "restarting it" in ln, 3.0)
     assert lost is not None, car.err.text()
     assert ("exited" if fault == "SIGKILL" else "frozen") in lost[1], lost[1]
-    wait_for(lambda: throttle.first(STOPPED, hit) is not None, 2.0)
+    time_when(lambda: throttle.first(STOPPED, hit) is not None, 2.0)
     stopped = throttle.first(STOPPED, hit)
     assert stopped is not None and stopped - hit < WINDOW_S + 0.75  # typical: 10-60 ms (kill), 260-300 (stop)
-    new = wait_for(lambda: [p for p in children_of(car.proc.pid) if alive(p) and p != old] != [], 3.0)
-    assert new is not None, "no new safety process"
+    time_when(
+        lambda: [p for p in children_of(car.proc.pid) if alive(p) and p != old] != [], 3.0, "a new safety process"
+    )
     assert not alive(old)
-    assert wait_for(lambda: throttle.first(DRIVING, stopped) is not None, 2.0) is not None  # it drives on
+    time_when(lambda: throttle.first(DRIVING, stopped) is not None, 2.0)  # it drives on
     # the new guard does the old one's job: the car's GIL is held 1.5 s, the throttle stops within the window
     os.kill(car.proc.pid, signal.SIGUSR1)
     hang = car.expect("hang")
-    stop = wait_for(lambda: pca.pulse(THROTTLE) == STOPPED, 3.0)
-    assert stop is not None and stop - hang < WINDOW_S + 1.0  # typical 0.2 s; 0.86 s seen with 7 suites running
+    stop = time_when(lambda: pca.pulse(THROTTLE) == STOPPED, 3.0)
+    assert stop - hang < WINDOW_S + 1.0  # typical 0.2 s; 0.86 s seen with 7 suites running
     report = car.report(15.0)
     sp = report["safety_process"]
     assert sp["lost"] == 1 and sp["restarts"] == 1, sp

@@ -16,7 +16,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,6 +25,8 @@ from asyncdonkey import Vehicle
 from asyncdonkey.hw.pca9685 import open_pwm_channel
 from asyncdonkey.safety import GuardedOutput, SafetyProcess
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+from ..waiting import time_when
 
 pytestmark = [pytest.mark.realtime, pytest.mark.subprocess]
 
@@ -41,18 +43,6 @@ def served() -> Iterator[tuple[I2CSimulator, PCA9685Model]]:
     sim.serve()
     yield sim, pca
     sim.close()
-
-
-def wait_for(cond: Callable[[], bool], timeout: float, step: float = 0.001) -> float | None:
-    """Poll ``cond`` until it holds; the monotonic time it first held, or ``None`` after ``timeout``."""
-    end = time.monotonic() + timeout
-    while True:
-        now = time.monotonic()
-        if cond():
-            return now
-        if now > end:
-            return None
-        time.sleep(step)
 
 
 # ------------------------------------------------------------------------------- the car as a process
@@ -118,11 +108,14 @@ def test_kill_9_of_the_car_leaves_the_chip_in_its_safe_state(served: tuple[I2CSi
         assert guards, "the car started no safety process"
         killed = time.monotonic()
         os.kill(car.proc.pid, signal.SIGKILL)
-        stopped = wait_for(lambda: pca.pulse(THROTTLE) == STOPPED and pca.pulse(STEERING) == CENTRE, 5.0)
-        assert stopped is not None, f"still {pca.pulse(THROTTLE)}/{pca.pulse(STEERING)} 5 s after kill -9"
+        stopped = time_when(
+            lambda: pca.pulse(THROTTLE) == STOPPED and pca.pulse(STEERING) == CENTRE,
+            5.0,
+            lambda: f"the safe pulses after kill -9 (still {pca.pulse(THROTTLE)}/{pca.pulse(STEERING)})",
+        )
         assert stopped - killed < 1.0
         # the guard ends once the outputs are safe: it outlives the car only to stop it
-        assert wait_for(lambda: not any(Path(f"/proc/{p}").exists() for p in guards), 10.0, 0.05) is not None
+        time_when(lambda: not any(Path(f"/proc/{p}").exists() for p in guards), 10.0, "the guards to end", 0.05)
     finally:
         car.kill()
 
@@ -132,8 +125,11 @@ def stopped_within_the_window_of_the_hang(car: CarProcess, pca: PCA9685Model) ->
     window (its last command came before the hang) plus what a loaded machine adds."""
     car.expect("driving")
     hang = car.expect("hang")
-    stopped = wait_for(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0)
-    assert stopped is not None, f"throttle still {pca.pulse(THROTTLE)} 5 s into the hang"
+    stopped = time_when(
+        lambda: pca.pulse(THROTTLE) == STOPPED,
+        5.0,
+        lambda: f"the throttle stopped in the hang (still {pca.pulse(THROTTLE)})",
+    )
     assert stopped - hang < 0.25 + 0.5
 
 
@@ -188,7 +184,7 @@ def test_a_nacked_safe_write_is_retried_until_it_lands(served: tuple[I2CSimulato
         throttle.set_pulse_sync(DRIVING)
         sim.bus(1).nack(0x40, times=30)  # 30 transactions fail; the guard's first attempts among them
         guard.deadline_setter(0)(time.monotonic())  # the command is stale now
-        assert wait_for(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0) is not None
+        time_when(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0)
     finally:
         summary = guard.stop()
     assert summary["events"] == 1
@@ -205,9 +201,9 @@ def test_the_safe_state_is_held_until_a_fresh_command(served: tuple[I2CSimulator
     try:
         throttle.set_pulse_sync(DRIVING)
         set_deadline(time.monotonic() + 0.05)
-        assert wait_for(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0) is not None
+        time_when(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0)
         throttle.set_pulse_sync(DRIVING)  # stale: no new command was published
-        assert wait_for(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0) is not None
+        time_when(lambda: pca.pulse(THROTTLE) == STOPPED, 5.0)
         set_deadline(time.monotonic() + 60.0)  # a fresh command ...
         throttle.set_pulse_sync(DRIVING)  # ... and its write
         time.sleep(0.5)  # several of the guard's read-backs
@@ -233,8 +229,7 @@ def test_a_stopped_heartbeat_centres_the_steering_and_a_live_one_lets_go(
             time.sleep(0.01)
         assert pca.pulse(STEERING) == 300 and pca.pulse(THROTTLE) == DRIVING
         silent = time.monotonic()  # the loop stops ticking
-        safe = wait_for(lambda: pca.pulse(STEERING) == CENTRE and pca.pulse(THROTTLE) == STOPPED, 5.0)
-        assert safe is not None
+        safe = time_when(lambda: pca.pulse(STEERING) == CENTRE and pca.pulse(THROTTLE) == STOPPED, 5.0)
         assert 0.2 - 0.02 < safe - silent < 0.2 + 0.5
         guard.beat(time.monotonic())  # the loop is back
         assert guard.resyncs == 1  # and learns that its outputs were written behind its back

@@ -13,7 +13,8 @@ import logging
 import aiohttp
 import pytest
 
-from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving
+from ..waiting import await_until
+from .web_rig import ZERO_PULSE, WebCar, auth, driving
 
 pytestmark = [pytest.mark.realtime, pytest.mark.network]
 

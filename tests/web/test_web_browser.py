@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from .web_rig import ZERO_PULSE, CarThread, WebCar, wait_until
+from ..waiting import wait_until
+from .web_rig import ZERO_PULSE, CarThread, WebCar
 
 pytestmark = [pytest.mark.realtime, pytest.mark.browser, pytest.mark.network, pytest.mark.subprocess]
 

@@ -23,7 +23,8 @@ import pytest
 from asyncdonkey.parts.web import WebConfigError, WebController
 from asyncdonkey.parts.web.guard import DEFAULT_HEADER_TIMEOUT_S, ConnectionGuard, FdBudget
 
-from .web_rig import ZERO_PULSE, WebCar, auth, await_until, driving, self_signed
+from ..waiting import await_until
+from .web_rig import ZERO_PULSE, WebCar, auth, driving, self_signed
 
 HEADER_TIMEOUT_S = DEFAULT_HEADER_TIMEOUT_S
 #: How long after the header timeout a slow connection may still live, as the flooder sees it: it also waits in the

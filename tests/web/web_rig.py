@@ -9,8 +9,6 @@ import datetime
 import ipaddress
 import ssl
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +20,8 @@ from asyncdonkey.parts.control import DriveMode
 from asyncdonkey.parts.tub import TubWriter
 from asyncdonkey.parts.web import WebController
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
+
+from ..waiting import await_until
 
 STEERING_CH, THROTTLE_CH = 1, 0
 ZERO_PULSE = 370
@@ -86,29 +86,6 @@ class WebCar:
 
     def steering_pulse(self) -> int:
         return self.pca.pulse(STEERING_CH)
-
-
-def wait_until(cond: Callable[[], Any], timeout: float = 5.0, what: str = "condition") -> Any:
-    """Poll ``cond`` (real time) until it is truthy; fail naming ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while True:
-        got = cond()
-        if got:
-            return got
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
-
-
-async def await_until(cond: Callable[[], Any], timeout: float = 5.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        got = cond()
-        if got:
-            return got
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 class CarThread:

@@ -1,12 +1,13 @@
 """The ONNX exporter: the graph computes what numpy trains on, bytes are deterministic, onnxruntime loads it."""
 
+from __future__ import annotations
+
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import onnx
-import onnxruntime as ort
 import pytest
 
 from asyncdonkey.parts.sim import Simulator
@@ -18,6 +19,9 @@ from asyncdonkey.pilot_export import (
     export_linear_pilot,
     linear_features,
 )
+
+if TYPE_CHECKING:
+    import onnxruntime as ort
 
 REPO = Path(__file__).resolve().parents[1]
 SIM_PILOT = REPO / "examples" / "models" / "sim_pilot.onnx"
@@ -35,6 +39,8 @@ def sim_frames(n: int = 6) -> list[np.ndarray]:
 
 
 def session(path: Path) -> ort.InferenceSession:
+    import onnxruntime as ort
+
     return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
 
 
@@ -51,6 +57,8 @@ def weights(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("layout", ["NHWC", "NCHW"])
 def test_graph_features_equal_numpy_features_on_simulator_frames(tmp_path, layout):
     """The whole feature vector, read from inside the graph, matches linear_features() to ~1e-5."""
+    import onnx
+
     path = export_linear_pilot(tmp_path / "m.onnx", *weights(), layout=layout)
     model = onnx.load(str(path))
     model.graph.output.append(onnx.helper.make_tensor_value_info("features", onnx.TensorProto.FLOAT, [1, None]))
@@ -106,6 +114,8 @@ def test_bytes_are_deterministic_and_depend_on_weights(tmp_path):
 
 
 def test_ir_version_and_opset_are_readable_by_onnxruntime(tmp_path):
+    import onnx
+
     for path in (
         export_linear_pilot(tmp_path / "l.onnx", *weights()),
         export_donkey_linear_shaped(tmp_path / "d.onnx"),
@@ -131,6 +141,8 @@ def test_linear_features_refuses_a_wrong_frame():
 
 
 def test_donkey_shaped_model_has_two_one_value_outputs_in_both_layouts(tmp_path):
+    import onnx
+
     nhwc = session(export_donkey_linear_shaped(tmp_path / "a.onnx", seed=0))
     nchw = session(export_donkey_linear_shaped(tmp_path / "b.onnx", seed=0, layout="NCHW"))
     assert [o.name for o in nhwc.get_outputs()] == ["n_outputs0", "n_outputs1"]

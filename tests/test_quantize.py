@@ -4,7 +4,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import onnx
 import pytest
 
 from asyncdonkey.commands.cli import main
@@ -45,6 +44,8 @@ def model(tmp_path_factory) -> Path:
 
 
 def test_int8_model_is_qdq_runs_in_onnx_pilot_and_stays_close_to_float(tub, model, tmp_path):
+    import onnx
+
     out = tmp_path / "donkey_small.int8.onnx"
     report = quantize_pilot(model, tub, out, frames=40)
     assert report.frames == 40 and report.out == str(out) and report.per_channel

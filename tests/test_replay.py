@@ -20,9 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-import onnx  # the test extra has onnx
 import pytest
-from onnx import TensorProto, helper, numpy_helper
 
 from asyncdonkey import Vehicle, get_clock
 from asyncdonkey.commands.replay import CSV_COLUMNS, ReplayError, replay
@@ -39,6 +37,9 @@ TOL = 1e-4
 # ------------------------------------------------------------------------------------------------ helpers
 def write_model(path: Path, rows: int = 120, cols: int = 160) -> Path:
     """angle = 2 * mean(R) - 1, throttle = mean(G), on the frame scaled to [0, 1] (what OnnxPilot feeds)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
     inits = [
         numpy_helper.from_array(np.array([0], np.int64), "c0"),
         numpy_helper.from_array(np.array([1], np.int64), "c1"),

@@ -5,9 +5,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
-import onnx
 import pytest
-from onnx import TensorProto, helper, numpy_helper
 
 from asyncdonkey import Vehicle
 from asyncdonkey.loop import run_blocking
@@ -16,10 +14,22 @@ from asyncdonkey.parts.sim import Simulator
 from asyncdonkey.pilot_export import FEATURE_SIZE, export_donkey_linear_shaped, export_linear_pilot, linear_features
 
 PIXELS = (7, 12345, 57599)  # flat indices into the model's input tensor
+# onnx.TensorProto.FLOAT and .DOUBLE, named here so that collecting this file does not import onnx (1.2 s); the
+# first test checks them against onnx's own
+FLOAT, DOUBLE = 1, 11
 
 
-def save(path: Path, nodes, inits, in_shape, outputs, in_type=TensorProto.FLOAT) -> Path:
+def test_the_element_type_numbers_named_here_are_onnx_s_own() -> None:
+    from onnx import TensorProto
+
+    assert (FLOAT, DOUBLE) == (TensorProto.FLOAT, TensorProto.DOUBLE)
+
+
+def save(path: Path, nodes, inits, in_shape, outputs, in_type: int = FLOAT) -> Path:
     """A small model written with onnx.helper, IR 8 / opset 17 (what onnxruntime reads)."""
+    import onnx
+    from onnx import TensorProto, helper
+
     g = helper.make_graph(
         nodes,
         "t",
@@ -36,6 +46,8 @@ def save(path: Path, nodes, inits, in_shape, outputs, in_type=TensorProto.FLOAT)
 def pixel_probe(path: Path, in_shape, outputs=(("pair", [1, 2]),)) -> Path:
     """Outputs two raw input values (flat indices PIXELS[0], PIXELS[1]) as one [1, 2] output, or as two
     [1, 1] outputs: what the pilot returns is then exactly what it fed the model."""
+    from onnx import helper, numpy_helper
+
     inits = [
         numpy_helper.from_array(np.array([1, -1], np.int64), "flat"),
         numpy_helper.from_array(np.array(PIXELS[:2], np.int64), "idx"),
@@ -134,6 +146,8 @@ def test_outputs_are_clipped_to_plus_minus_one(tmp_path):
 
 
 def test_nan_output_is_a_clear_error(tmp_path):
+    from onnx import helper, numpy_helper
+
     nodes = [
         helper.make_node("ReduceMean", ["x"], ["m"], keepdims=0),
         helper.make_node("Add", ["m", "nan"], ["out"]),
@@ -170,14 +184,16 @@ def test_image_shape_mismatch_names_model_and_both_shapes(tmp_path):
 @pytest.mark.parametrize(
     ("in_shape", "in_type", "match"),
     [
-        ([1, 160, 120, 3], TensorProto.FLOAT, r"wants input 'x' \[1, 160, 120, 3\]"),
-        ([1, 120, 160, 4], TensorProto.FLOAT, r"wants input 'x' \[1, 120, 160, 4\]"),
-        ([4, 120, 160, 3], TensorProto.FLOAT, "has batch 4; expected 1 or dynamic"),
-        ([120, 160, 3], TensorProto.FLOAT, r"expected a 4-D float tensor"),
-        ([1, 120, 160, 3], TensorProto.DOUBLE, r"tensor\(double\).*expected a 4-D float tensor"),
+        ([1, 160, 120, 3], FLOAT, r"wants input 'x' \[1, 160, 120, 3\]"),
+        ([1, 120, 160, 4], FLOAT, r"wants input 'x' \[1, 120, 160, 4\]"),
+        ([4, 120, 160, 3], FLOAT, "has batch 4; expected 1 or dynamic"),
+        ([120, 160, 3], FLOAT, r"expected a 4-D float tensor"),
+        ([1, 120, 160, 3], DOUBLE, r"tensor\(double\).*expected a 4-D float tensor"),
     ],
 )
 def test_unusable_inputs_are_refused(tmp_path, in_shape, in_type, match):
+    from onnx import helper
+
     nodes = [helper.make_node("ReduceMean", ["x"], ["m"], keepdims=0), helper.make_node("Cast", ["m"], ["out"], to=1)]
     path = save(tmp_path / "bad_in.onnx", nodes, [], in_shape, [("out", [])], in_type=in_type)
     with pytest.raises(PilotModelError, match=match) as info:
@@ -194,6 +210,8 @@ def test_unusable_inputs_are_refused(tmp_path, in_shape, in_type, match):
     ],
 )
 def test_unusable_outputs_are_refused(tmp_path, outputs):
+    from onnx import helper, numpy_helper
+
     nodes = [helper.make_node("ReduceMean", ["x"], ["m"], keepdims=0)]
     inits = []
     for name, shape in outputs:
@@ -207,6 +225,7 @@ def test_unusable_outputs_are_refused(tmp_path, outputs):
 def test_undeclared_output_size_is_checked_by_the_warm_up_run(tmp_path):
     """An output whose size depends on the data is run once at load: 3 values is refused there, not on the
     first tick (and 2 values is accepted as angle, throttle)."""
+    from onnx import TensorProto, helper, numpy_helper
 
     def model(n: float) -> Path:
         nodes = [

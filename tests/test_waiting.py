@@ -63,6 +63,7 @@ def test_a_timed_out_wait_is_an_assertion_error() -> None:
     assert issubclass(TimedOut, AssertionError)  # pytest reports it as a failed test, not an error
 
 
+@pytest.mark.realtime  # it compares time.monotonic() readings (though no bound on how far apart)
 def test_time_when_returns_a_reading_taken_before_the_check_that_held() -> None:
     before = time.monotonic()
     _, cond = counter(2)

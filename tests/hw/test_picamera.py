@@ -237,6 +237,7 @@ def test_apt_simplejpeg_built_for_numpy_1_gets_its_own_hint(monkeypatch, error):
     assert "apt install" not in str(info.value)
 
 
+@pytest.mark.realtime  # a real-clock camera model, a reader thread, and a wall-clock bound on close()
 def test_close_wakes_a_capture_waiting_on_a_stalled_camera():
     r = Picamera2Model(fps=20, clock="real")
     cam = PiCameraDriver(picamera2=r.module, sensor_clock_ns=r.clock_ns, timeout_s=30.0)

@@ -210,7 +210,9 @@ async def test_stale_command_failsafe_stops_the_car_when_the_remote_pilot_goes_q
     # (the first ticks may also count one: no command has arrived yet)
     assert throttle.failsafe_events in (1, 2)
     ages = [a for t, _, a in probe.rows if 0.2 < t - t0 < 0.55]
-    assert max(ages) < 0.1  # while the pilot talks, its commands are fresh
+    # while the pilot talks, its commands are fresh: well under the failsafe's 0.25 s; 0.2 s leaves room for a
+    # tick or a delivery delayed by a loaded 2-core machine (the 50 Hz pilot's commands are 20 ms apart)
+    assert max(ages) < 0.2
 
 
 class _Seen:

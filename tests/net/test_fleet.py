@@ -92,6 +92,7 @@ def test_status_documents_are_plain_json_for_any_client():
 
 
 @pytest.mark.network
+@pytest.mark.realtime  # the car's status comes from a thread every 50 ms of real time while top listens
 def test_top_once_prints_the_cars_it_heard(capsys):
     port = free_port()
     car = ZenohLink("cars/solo", listener(port))

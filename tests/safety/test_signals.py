@@ -148,7 +148,9 @@ def test_sigint_ends_a_drive_whose_async_part_never_returns(car):
     # the watchdog had already stopped the car a window after the part hung
     pulses = c.pulses()
     stop = next(t for t, p in pulses if p == 370 and t > hang_at)
-    assert stop - hang_at <= 0.25 + 0.15
+    # the window (0.25 s), plus room for a loaded 2-core machine: the car's watchdog thread has to be scheduled and
+    # its write reach the chip model's process (the same room as test_safety_process's kill -9 and hang bounds)
+    assert stop - hang_at <= 0.25 + 0.5
     assert pulses[-1][1] == 370
 
 
@@ -164,7 +166,7 @@ def test_sigint_interrupts_a_sync_part_that_holds_the_loop(car):
     assert "part 'Pilot' interrupted: it held the loop thread" in err
     assert "stopped by: SIGINT" in err
     pulses = c.pulses()
-    assert next(t for t, p in pulses if p == 370 and t > hang_at) - hang_at <= 0.25 + 0.15
+    assert next(t for t, p in pulses if p == 370 and t > hang_at) - hang_at <= 0.25 + 0.5  # as above
 
 
 @pytest.mark.subprocess

@@ -432,7 +432,7 @@ async def test_the_record_count_is_pushed_each_time_it_crosses_ten_even_in_a_jum
     """The tub counts a record once it is on disk, so the count can move by two: 9 → 11 still crosses 10."""
     ctr = WebController(host="127.0.0.1", announce=None)
     pushed: list[dict] = []
-    ctr._broadcast = pushed.append  # what would go to every page
+    ctr.pages.broadcast = pushed.append  # type: ignore[method-assign]  # what would go to every page
     ctr.run(None, 0, "user", True)
     for n in (3, 9, 11, 12, 19, 20, 21, 33):
         ctr.run(None, n, "user", True)

@@ -25,10 +25,13 @@ page never redefines "safe" during a drive.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections import deque
 from typing import Any
 
 from ...contracts import Contract
+from ...ratelimit import LogThrottle
 from ..actuators import CalibrationLocked
 from ..control import USER
 from .auth import WebConfigError
@@ -39,6 +42,7 @@ __all__ = [
     "STEERING_KEYS",
     "THROTTLE_KEYS",
     "CalibrationError",
+    "CalibrationRecords",
     "admit_config",
     "apply_calibration",
     "current_calibration",
@@ -51,6 +55,8 @@ THROTTLE_KEYS = {
     "THROTTLE_STOPPED_PWM": "zero_pulse",
     "THROTTLE_REVERSE_PWM": "min_pulse",
 }
+logger = logging.getLogger("asyncdonkey.parts.web.controller")  # the controller's log, where owners look
+
 #: the channel a calibration message's refusals are counted under (not an object, unknown setting, ...)
 CALIBRATION = "web/calibration"
 
@@ -212,3 +218,33 @@ def _read_back(steering: Any, throttle: Any, asked: dict[str, int]) -> dict[str,
         said = ", ".join(f"{k} asked {a}, in force {b}" for k, (a, b) in wrong.items())
         raise CalibrationError(f"calibration: the read-back differs: {said}", in_force, reason="readback")
     return in_force
+
+
+class CalibrationRecords:
+    """The latest calibration requests, accepted or refused, each with when, who, what was asked, what changed
+    and why not; every one logged (refusals rate-limited per client: one a second, so a page retrying in a loop
+    cannot flood the log).
+
+    Args:
+        keep: how many of the latest requests are kept (:attr:`records`).
+    """
+
+    __slots__ = ("_log", "records")
+
+    def __init__(self, keep: int = 100) -> None:
+        self.records: deque[dict[str, Any]] = deque(maxlen=keep)
+        self._log = LogThrottle(1.0)
+
+    def accepted(self, now: float, who: str, asked: dict[str, int], changed: dict[str, list[int]]) -> None:
+        """Keep and log an applied calibration: ``changed`` maps each setting to ``[before, after]``."""
+        self.records.append({"t": now, "who": who, "asked": asked, "changed": changed, "refused": None})
+        said = ", ".join(f"{k} {a} -> {b}" for k, (a, b) in changed.items()) or "nothing changed"
+        logger.info("web: calibration by %s: %s", who, said)
+
+    def refused(self, now: float, who: str, asked: object, exc: CalibrationError) -> None:
+        """Keep and log a refused calibration with who asked."""
+        record = asked if isinstance(asked, dict) else repr(asked)[:80]
+        self.records.append({"t": now, "who": who, "asked": record, "changed": {}, "refused": str(exc)})
+        more = self._log.ready(who, now, "refusals")
+        if more is not None:
+            logger.warning("web: calibration refused for %s (asked %.200s): %s%s", who, record, exc, more)

@@ -31,10 +31,11 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import dataclasses
 import inspect
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any, NamedTuple, Protocol
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar, overload
 
 import serial
 from serial_asyncio import connection_for_serial  # the one import of the asyncio serial layer (see docstring)
@@ -42,12 +43,22 @@ from serial_asyncio import connection_for_serial  # the one import of the asynci
 from ..clock import Clock, DeadlineWaiter, get_clock
 from ..errors import AsyncdonkeyError
 from ..ratelimit import LogThrottle
+from .serial_config import PARITIES, SERIAL_SETTINGS, SerialConfig
 
-__all__ = ["ByteReceiver", "Line", "LineFramer", "SerialPort", "SerialPortClosed"]
+__all__ = [
+    "ByteReceiver",
+    "Line",
+    "LineFramer",
+    "LineQueue",
+    "SerialConfig",
+    "SerialCounters",
+    "SerialPort",
+    "SerialPortClosed",
+]
 
 logger = logging.getLogger(__name__)
 
-_PARITIES = {"N": serial.PARITY_NONE, "E": serial.PARITY_EVEN, "O": serial.PARITY_ODD}
+T = TypeVar("T")
 
 
 class Line(NamedTuple):
@@ -129,122 +140,207 @@ class LineFramer:
         return out
 
 
+@dataclasses.dataclass(slots=True)
+class SerialCounters:
+    """What a port counts (never reset; :meth:`SerialPort.stats` takes them all, with the live figures)."""
+
+    connects: int = 0
+    disconnects: int = 0
+    open_attempts: int = 0
+    open_failures: int = 0
+    bytes_received: int = 0
+    bytes_written: int = 0
+    lines_received: int = 0
+    lines_dropped: int = 0
+    first_lines_skipped: int = 0
+    writes_dropped: int = 0
+    receiver_errors: int = 0
+    hook_errors: int = 0
+
+
+class LineQueue:
+    """The line reader's state: the framer, the bounded queue of complete lines, and the first-line skip.
+
+    A consumer that falls behind loses the oldest lines (counted), never memory; the skip is re-armed at each
+    (re)connect, since the first "line" of a device already streaming is a tail fragment.
+    """
+
+    __slots__ = ("framer", "lines", "max_lines", "ready", "skip_first", "skip_next")
+
+    def __init__(self, config: SerialConfig) -> None:
+        self.framer = LineFramer(config.max_line_length, config.encoding)
+        self.lines: collections.deque[Line] = collections.deque()
+        self.max_lines = config.max_lines
+        self.skip_first = config.skip_first_line
+        self.skip_next = False
+        #: set when lines arrive (made on the loop, by the first reader or by ``run()``)
+        self.ready: asyncio.Event | None = None
+
+    def reconnected(self) -> None:
+        """A new connection: forget a partial line (its rest will never come), arm the first-line skip."""
+        self.framer.reset()
+        self.skip_next = self.skip_first
+
+    def feed(self, data: bytes, now: Callable[[], float], counters: SerialCounters) -> None:
+        """Frame ``data`` and queue its complete lines, stamped ``now()``."""
+        texts = self.framer.feed(data)
+        if not texts:
+            return
+        if self.skip_next:
+            self.skip_next = False
+            counters.first_lines_skipped += 1
+            del texts[0]
+            if not texts:
+                return
+        t = now()
+        lines = self.lines
+        for text in texts:
+            if len(lines) >= self.max_lines:
+                lines.popleft()
+                counters.lines_dropped += 1
+            lines.append(Line(t, text))
+        counters.lines_received += len(texts)
+        if self.ready is not None:
+            self.ready.set()
+
+
+class _Lifecycle:
+    """The reconnect loop's state: whether ``run()`` is running or the port closing, and what wakes or ends it."""
+
+    __slots__ = ("closing", "running", "stopped", "task", "wake")
+
+    def __init__(self) -> None:
+        self.closing = False
+        self.running = False
+        self.task: asyncio.Task[None] | None = None  # the run() task start() spawned
+        self.wake: asyncio.Future[None] | None = None  # cuts a back-off pause short (close)
+        self.stopped: asyncio.Event | None = None  # set when run() returns
+
+
+class _From(Generic[T]):
+    """A read-only attribute of the port kept in one of its parts (its config, its counters), by the same name."""
+
+    __slots__ = ("holder", "name")
+
+    def __init__(self, holder: str) -> None:
+        self.holder = holder
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type) -> _From[T]: ...
+    @overload
+    def __get__(self, obj: object, owner: type) -> T: ...
+    def __get__(self, obj: object | None, owner: type) -> _From[T] | T:
+        if obj is None:
+            return self
+        value: T = getattr(getattr(obj, self.holder), self.name)
+        return value
+
+
+def _config(config: SerialConfig | str | None, baudrate: int | None, settings: dict[str, Any]) -> SerialConfig:
+    """The port's config: ``config`` with the keyword ``settings`` applied over it (a path and baud rate given
+    positionally, as Donkeycar's serial parts take them, are settings too)."""
+    unknown = sorted(set(settings) - SERIAL_SETTINGS)
+    if unknown:
+        raise TypeError(
+            f"SerialPort: unknown setting {unknown[0]!r}; the settings are SerialConfig's: "
+            f"{', '.join(sorted(SERIAL_SETTINGS))}"
+        )
+    if not isinstance(config, SerialConfig | None):
+        settings["port"] = config  # SerialPort("/dev/ttyACM0", ...): checked by SerialConfig like any path
+        config = None
+    if baudrate is not None:
+        settings["baudrate"] = baudrate
+    if config is None:
+        return SerialConfig(**settings)
+    return dataclasses.replace(config, **settings) if settings else config
+
+
 class SerialPort:
     """A serial port read by the event loop, framed into lines (or raw bytes), reconnecting after unplug.
 
     Use ``await port.run()`` as (part of) a background task, or ``await port.start()`` to spawn it; stop
     with ``await port.close()``. ``connected`` tells whether a device is there right now.
 
+    Its settings are a :class:`~asyncdonkey.hw.serial_config.SerialConfig`, kept apart from the port's state: the
+    config is the one place that lists what is settable, with defaults and checks (every setting is validated
+    once, when the config is made, with a one-line error naming it), and, frozen, it can be shared between cars
+    and tests and varied with :func:`dataclasses.replace`. ``SerialPort(config)`` takes one; the keyword form
+    (``SerialPort("/dev/ttyACM0", 115200, skip_first_line=True)``) builds one, and keywords given with a config
+    are applied over it. The state is split by job: :class:`SerialCounters` (the counts), :class:`LineQueue`
+    (the line reader) and the reconnect loop's state; the settings and counters read as attributes of the port.
+
     Args:
-        port: device path (prefer a stable ``/dev/serial/by-id/...`` path) or a pyserial URL.
-        baudrate, bytesize, parity (``"N"``, ``"E"``, ``"O"``), stopbits: line settings (default 115200 8N1).
+        config: the settings (:class:`~asyncdonkey.hw.serial_config.SerialConfig`), or the device path.
+        baudrate: the baud rate, as the keyword form passes it second.
         receiver: binary mode: raw bytes go to ``receiver.data_received`` instead of the line framer.
-        max_lines: complete lines kept for consumers; the oldest is dropped (and counted) when full.
-        max_line_length: longer lines are dropped and counted, never buffered without bound.
-        encoding: how lines are decoded; undecodable lines are dropped and counted.
-        skip_first_line: drop the first line after each (re)connect. A device that was already streaming
-            when the port opened makes the first "line" a tail fragment, which for a protocol without a
-            checksum (the wheel encoder) would parse as a wrong value.
         on_connect: ``hook(port)`` (sync or async) run after every successful open, e.g. to send commands.
-        backoff_initial_s, backoff_max_s: retry delays after a failed open, doubling up to the maximum; the
-            first retry after a disconnect waits ``backoff_initial_s``.
-        max_write_buffer: bytes the transport may hold unsent before writes are refused.
-        name: used in log messages (default: the port path).
+        settings: any of :class:`~asyncdonkey.hw.serial_config.SerialConfig`'s settings, applied over ``config``.
     """
+
+    port = _From[str]("config")
+    baudrate = _From[int]("config")
+    bytesize = _From[int]("config")
+    parity = _From[str]("config")
+    stopbits = _From[float]("config")
+    max_lines = _From[int]("config")
+    max_line_length = _From[int]("config")
+    encoding = _From[str]("config")
+    skip_first_line = _From[bool]("config")
+    backoff_initial_s = _From[float]("config")
+    backoff_max_s = _From[float]("config")
+    max_write_buffer = _From[int]("config")
+    connects = _From[int]("counters")
+    disconnects = _From[int]("counters")
+    open_attempts = _From[int]("counters")
+    open_failures = _From[int]("counters")
+    bytes_received = _From[int]("counters")
+    bytes_written = _From[int]("counters")
+    lines_received = _From[int]("counters")
+    lines_dropped = _From[int]("counters")
+    first_lines_skipped = _From[int]("counters")
+    writes_dropped = _From[int]("counters")
+    receiver_errors = _From[int]("counters")
+    hook_errors = _From[int]("counters")
 
     def __init__(
         self,
-        port: str,
-        baudrate: int = 115200,
+        config: SerialConfig | str | None = None,
+        baudrate: int | None = None,
         *,
-        bytesize: int = 8,
-        parity: str = "N",
-        stopbits: float = 1,
         receiver: ByteReceiver | None = None,
-        max_lines: int = 256,
-        max_line_length: int = 256,
-        encoding: str = "ascii",
-        skip_first_line: bool = False,
         on_connect: ConnectHook | None = None,
-        backoff_initial_s: float = 0.05,
-        backoff_max_s: float = 2.0,
-        max_write_buffer: int = 4096,
-        name: str | None = None,
+        **settings: Any,
     ) -> None:
-        self.name = name or str(port)
-        where = f"SerialPort({self.name!r})"
-        if not isinstance(port, str) or not port:
-            raise ValueError(f"{where}: port must be a device path such as '/dev/ttyACM0', got {port!r}")
-        if not (isinstance(baudrate, int) and baudrate > 0):
-            raise ValueError(f"{where}: baudrate must be a positive int, got {baudrate!r}")
-        if parity not in _PARITIES:
-            raise ValueError(f"{where}: parity must be one of {sorted(_PARITIES)}, got {parity!r}")
-        if bytesize not in (5, 6, 7, 8):
-            raise ValueError(f"{where}: bytesize must be 5, 6, 7 or 8, got {bytesize!r}")
-        if stopbits not in (1, 1.5, 2):
-            raise ValueError(f"{where}: stopbits must be 1, 1.5 or 2, got {stopbits!r}")
-        if not (isinstance(max_lines, int) and max_lines > 0):
-            raise ValueError(f"{where}: max_lines must be a positive int, got {max_lines!r}")
-        if not (isinstance(max_line_length, int) and max_line_length > 0):
-            raise ValueError(f"{where}: max_line_length must be a positive int, got {max_line_length!r}")
-        if not 0 < backoff_initial_s <= backoff_max_s:
-            raise ValueError(
-                f"{where}: need 0 < backoff_initial_s <= backoff_max_s, got {backoff_initial_s!r}, {backoff_max_s!r}"
-            )
+        cfg = self.config = _config(config, baudrate, settings)
         if receiver is not None and not callable(getattr(receiver, "data_received", None)):
+            where = f"SerialPort({cfg.label!r})"
             raise TypeError(f"{where}: receiver must have a data_received(bytes) method, got {receiver!r}")
-        "".encode(encoding)  # unknown encodings fail here, not on the first line
-
-        self.port = port
-        self.baudrate = baudrate
-        self.bytesize = bytesize
-        self.parity = parity
-        self.stopbits = stopbits
         self.receiver = receiver
-        self.max_lines = max_lines
-        self.max_line_length = max_line_length
-        self.encoding = encoding
-        self.skip_first_line = skip_first_line
         self.on_connect = on_connect
-        self.backoff_initial_s = float(backoff_initial_s)
-        self.backoff_max_s = float(backoff_max_s)
-        self.max_write_buffer = max_write_buffer
-
         #: True while a device is open and readable.
         self.connected = False
-        # counters (never reset; read them, or take them all with stats())
-        self.connects = 0
-        self.disconnects = 0
-        self.open_attempts = 0
-        self.open_failures = 0
-        self.bytes_received = 0
-        self.bytes_written = 0
-        self.lines_received = 0
-        self.lines_dropped = 0
-        self.first_lines_skipped = 0
-        self.writes_dropped = 0
-        self.receiver_errors = 0
-        self.hook_errors = 0
+        self.counters = SerialCounters()
         #: the last open or read error, for diagnostics
         self.last_error: BaseException | None = None
-
-        self._lines: collections.deque[Line] = collections.deque()
-        self._framer = LineFramer(max_line_length, encoding)
-        self._skip_next_line = False
+        self._lines = LineQueue(cfg)
+        self._life = _Lifecycle()
         self._transport: asyncio.Transport | None = None
+        self._connected_event: asyncio.Event | None = None
         self._clock: Clock | None = None
         self._now: Callable[[], float] | None = None
-        self._closing = False
-        self._running = False
-        self._task: asyncio.Task[None] | None = None
-        self._wake: asyncio.Future[None] | None = None
-        self._lines_ready: asyncio.Event | None = None
-        self._connected_event: asyncio.Event | None = None
-        self._stopped: asyncio.Event | None = None
         self._log = LogThrottle(5.0)
         self._on_data: Callable[[bytes], None] = self._feed_receiver if receiver is not None else self._feed_lines
         self._receiver_made = getattr(receiver, "connection_made", None)
         self._receiver_lost = getattr(receiver, "connection_lost", None)
+
+    @property
+    def name(self) -> str:
+        """How logs and errors name the port: the ``name`` setting, or the port path."""
+        return self.config.label
 
     def __repr__(self) -> str:
         state = "connected" if self.connected else "disconnected"
@@ -253,8 +349,9 @@ class SerialPort:
     # ------------------------------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
         """Spawn :meth:`run` as a task and return at once (the first open happens in the background)."""
-        if self._task is None or self._task.done():
-            self._task = asyncio.get_running_loop().create_task(self.run(), name=f"serial:{self.name}")
+        life = self._life
+        if life.task is None or life.task.done():
+            life.task = asyncio.get_running_loop().create_task(self.run(), name=f"serial:{self.name}")
             await asyncio.sleep(0)
 
     async def __aenter__(self) -> SerialPort:
@@ -269,21 +366,22 @@ class SerialPort:
 
         A closed port stays closed: ``run()`` after :meth:`close` returns at once.
         """
-        if self._running:
+        life = self._life
+        if life.running:
             raise RuntimeError(f"serial port {self.name!r}: run() is already running")
-        if self._closing:
+        if life.closing:
             return
         loop = asyncio.get_running_loop()
         clock = self._clock = get_clock(loop)
         self._now = clock.now
-        self._running = True
-        self._lines_ready = self._lines_ready or asyncio.Event()
+        life.running = True
+        self._lines.ready = self._lines.ready or asyncio.Event()
         self._connected_event = self._connected_event or asyncio.Event()
-        self._stopped = asyncio.Event()
+        life.stopped = asyncio.Event()
         delay = self.backoff_initial_s
         waiter = DeadlineWaiter(loop)  # one OS timer for every back-off pause of this run
         try:
-            while not self._closing:
+            while not life.closing:
                 ser = await self._open(loop)
                 if ser is None:
                     await self._pause(clock, waiter, delay)
@@ -293,16 +391,16 @@ class SerialPort:
                 transport, _ = await connection_for_serial(loop, lambda lost=lost: _Link(self, lost), ser)
                 self._attach(transport)
                 await self._run_hooks()
-                if not self._closing:
+                if not life.closing:
                     exc = await lost
                 else:
                     exc = None
                     transport.close()
                     await _wait_briefly(lost, transport)
                 self._detach()
-                if self._closing:
+                if life.closing:
                     break
-                self.disconnects += 1
+                self.counters.disconnects += 1
                 self.last_error = exc
                 logger.warning(
                     "serial port %r: device lost (%s); reconnecting (disconnect #%d)",
@@ -320,35 +418,36 @@ class SerialPort:
                 if not t.is_closing():
                     t.abort()
                 self._detach()
-            self._running = False
-            self._stopped.set()
+            life.running = False
+            life.stopped.set()
 
     async def close(self) -> None:
         """Stop reconnecting, close the device (pending writes are flushed first) and wait for :meth:`run`."""
-        self._closing = True
-        wake = self._wake
+        life = self._life
+        life.closing = True
+        wake = life.wake
         if wake is not None and not wake.done():
             wake.set_result(None)
-        for event in (self._lines_ready, self._connected_event):
+        for event in (self._lines.ready, self._connected_event):
             if event is not None:
                 event.set()  # wake waiters so they see the port is closed
         t = self._transport
         if t is not None:
             t.close()
-        if self._running and self._stopped is not None:
+        if life.running and life.stopped is not None:
             try:
-                await asyncio.wait_for(self._stopped.wait(), 1.0)
+                await asyncio.wait_for(life.stopped.wait(), 1.0)
             except TimeoutError:
                 t = self._transport
                 if t is not None:
                     _force_close(t)
-        task = self._task
+        task = life.task
         if task is not None and not task.done():
             try:
                 await asyncio.wait_for(task, 1.0)
             except (TimeoutError, asyncio.CancelledError):
                 task.cancel()
-        self._task = None
+        life.task = None
 
     async def wait_connected(self) -> None:
         """Return once a device is open (at once if it already is). Wrap in ``asyncio.wait_for`` for a limit.
@@ -356,7 +455,7 @@ class SerialPort:
         Raises :class:`SerialPortClosed` if the port is closed meanwhile.
         """
         while not self.connected:
-            if self._closing:
+            if self._life.closing:
                 raise SerialPortClosed(f"serial port {self.name!r} is closed")
             if self._connected_event is None:
                 self._connected_event = asyncio.Event()
@@ -369,36 +468,38 @@ class SerialPort:
 
         Raises :class:`SerialPortClosed` once :meth:`close` has been called and the buffer is empty.
         """
-        lines = self._lines
+        queue = self._lines
+        lines = queue.lines
         while not lines:
-            if self._closing:
+            if self._life.closing:
                 raise SerialPortClosed(f"serial port {self.name!r} is closed")
-            if self._lines_ready is None:
-                self._lines_ready = asyncio.Event()
-            self._lines_ready.clear()
-            await self._lines_ready.wait()
+            if queue.ready is None:
+                queue.ready = asyncio.Event()
+            queue.ready.clear()
+            await queue.ready.wait()
         return lines.popleft()
 
     def get_line_nowait(self) -> Line | None:
         """The oldest unread line, or ``None``."""
-        lines = self._lines
+        lines = self._lines.lines
         return lines.popleft() if lines else None
 
     def drain(self) -> list[Line]:
         """All unread lines, oldest first (like Donkeycar's ``SerialLineReader.run_threaded``)."""
-        out = list(self._lines)
-        self._lines.clear()
+        lines = self._lines.lines
+        out = list(lines)
+        lines.clear()
         return out
 
     @property
     def overlong_dropped(self) -> int:
         """Lines longer than ``max_line_length``, dropped."""
-        return self._framer.overlong
+        return self._lines.framer.overlong
 
     @property
     def decode_errors(self) -> int:
         """Lines that did not decode with ``encoding``, dropped."""
-        return self._framer.decode_errors
+        return self._lines.framer.decode_errors
 
     @property
     def serial(self) -> serial.Serial | None:
@@ -408,7 +509,8 @@ class SerialPort:
 
     @property
     def lines_buffered(self) -> int:
-        return len(self._lines)
+        """Complete lines waiting for a consumer."""
+        return len(self._lines.lines)
 
     async def lines(self) -> AsyncIterator[Line]:
         """Iterate over lines as they arrive, forever (until the consumer stops)."""
@@ -439,7 +541,7 @@ class SerialPort:
                 except SerialPortClosed:
                     break
                 except TimeoutError:
-                    if self.connected and not self._closing and on_idle is not None:
+                    if self.connected and not self._life.closing and on_idle is not None:
                         on_idle(self)
                     continue
                 handle(line)
@@ -458,16 +560,16 @@ class SerialPort:
         connected or the device is not draining what was already written."""
         t = self._transport
         if t is None or t.is_closing():
-            self.writes_dropped += 1
+            self.counters.writes_dropped += 1
             return False
         if t.get_write_buffer_size() + len(data) > self.max_write_buffer:
-            self.writes_dropped += 1
+            self.counters.writes_dropped += 1
             now = self._now() if self._now is not None else 0.0
             if self._log.allow("write", now):
                 logger.warning("serial port %r: device is not reading; write of %d bytes dropped", self.name, len(data))
             return False
         t.write(data)
-        self.bytes_written += len(data)
+        self.counters.bytes_written += len(data)
         return True
 
     def writeln(self, text: str) -> bool:
@@ -476,23 +578,16 @@ class SerialPort:
 
     def stats(self) -> dict[str, Any]:
         """Every counter, plus ``connected``, as a dict (for reports and logs)."""
+        counts = dataclasses.asdict(self.counters)
         return {
             "connected": self.connected,
-            "connects": self.connects,
-            "disconnects": self.disconnects,
-            "open_attempts": self.open_attempts,
-            "open_failures": self.open_failures,
-            "bytes_received": self.bytes_received,
-            "bytes_written": self.bytes_written,
-            "lines_received": self.lines_received,
-            "lines_buffered": len(self._lines),
-            "lines_dropped": self.lines_dropped,
+            **{k: counts[k] for k in ("connects", "disconnects", "open_attempts", "open_failures")},
+            **{k: counts[k] for k in ("bytes_received", "bytes_written", "lines_received")},
+            "lines_buffered": self.lines_buffered,
+            "lines_dropped": counts["lines_dropped"],
             "overlong_dropped": self.overlong_dropped,
             "decode_errors": self.decode_errors,
-            "first_lines_skipped": self.first_lines_skipped,
-            "writes_dropped": self.writes_dropped,
-            "receiver_errors": self.receiver_errors,
-            "hook_errors": self.hook_errors,
+            **{k: counts[k] for k in ("first_lines_skipped", "writes_dropped", "receiver_errors", "hook_errors")},
         }
 
     # ---------------------------------------------------------------------------------------- internals
@@ -502,7 +597,7 @@ class SerialPort:
             self.port,
             baudrate=self.baudrate,
             bytesize=self.bytesize,
-            parity=_PARITIES[self.parity],
+            parity=PARITIES[self.parity],
             stopbits=self.stopbits,
             timeout=0,
         )
@@ -513,7 +608,7 @@ class SerialPort:
         return ser
 
     async def _open(self, loop: asyncio.AbstractEventLoop) -> serial.Serial | None:
-        self.open_attempts += 1
+        self.counters.open_attempts += 1
         fut = loop.run_in_executor(None, self._open_serial)
         try:
             return await asyncio.shield(fut)
@@ -521,7 +616,7 @@ class SerialPort:
             fut.add_done_callback(_close_opened)
             raise
         except (OSError, serial.SerialException, ValueError) as exc:
-            self.open_failures += 1
+            self.counters.open_failures += 1
             self.last_error = exc
             now = self._now() if self._now is not None else 0.0
             more = self._log.ready("open", now, "more failures")
@@ -530,20 +625,20 @@ class SerialPort:
             return None
 
     async def _pause(self, clock: Clock, waiter: DeadlineWaiter, seconds: float) -> None:
-        if self._closing:
+        life = self._life
+        if life.closing:
             return
-        wake = self._wake = asyncio.get_running_loop().create_future()
+        wake = life.wake = asyncio.get_running_loop().create_future()
         try:
             await waiter.wait_until(clock.now() + seconds, wake)
         finally:
-            self._wake = None
+            life.wake = None
 
     def _attach(self, transport: asyncio.Transport) -> None:
         self._transport = transport
-        self._framer.reset()
-        self._skip_next_line = self.skip_first_line
+        self._lines.reconnected()
         self.connected = True
-        self.connects += 1
+        self.counters.connects += 1
         if self._connected_event is not None:
             self._connected_event.set()
         if self.connects > 1:
@@ -571,47 +666,29 @@ class SerialPort:
         except asyncio.CancelledError:
             raise
         except Exception as exc:
-            self.hook_errors += 1
+            self.counters.hook_errors += 1
             logger.error("serial port %r: on_connect hook failed: %r", self.name, exc, exc_info=exc)
 
     def _call_receiver(self, fn: Callable[..., Any], *args: Any) -> None:
         try:
             fn(*args)
         except Exception as exc:
-            self.receiver_errors += 1
+            self.counters.receiver_errors += 1
             logger.error("serial port %r: receiver %r raised %r", self.name, fn, exc, exc_info=exc)
 
     def _feed_receiver(self, data: bytes) -> None:
-        self.bytes_received += len(data)
+        self.counters.bytes_received += len(data)
         try:
             self.receiver.data_received(data)  # type: ignore[union-attr]
         except Exception as exc:
-            self.receiver_errors += 1
+            self.counters.receiver_errors += 1
             now = self._now() if self._now is not None else 0.0
             if self._log.allow("receiver", now):
                 logger.error("serial port %r: receiver failed on %d bytes: %r", self.name, len(data), exc)
 
     def _feed_lines(self, data: bytes) -> None:
-        self.bytes_received += len(data)
-        texts = self._framer.feed(data)
-        if not texts:
-            return
-        if self._skip_next_line:
-            self._skip_next_line = False
-            self.first_lines_skipped += 1
-            del texts[0]
-            if not texts:
-                return
-        now = self._now()  # type: ignore[misc]
-        lines = self._lines
-        for text in texts:
-            if len(lines) >= self.max_lines:
-                lines.popleft()
-                self.lines_dropped += 1
-            lines.append(Line(now, text))
-        self.lines_received += len(texts)
-        if self._lines_ready is not None:
-            self._lines_ready.set()
+        self.counters.bytes_received += len(data)
+        self._lines.feed(data, self._now, self.counters)  # type: ignore[arg-type]  # set before any data
 
 
 class _Link(asyncio.Protocol):

@@ -14,6 +14,8 @@ from hypothesis import strategies as st
 from asyncdonkey import Vehicle
 from asyncdonkey.buildscope import collecting, register_close
 
+from ..waiting import wait_until
+
 
 class Recorded:
     """A part whose shutdown writes its name to ``log`` (and raises, if asked)."""
@@ -174,7 +176,6 @@ def test_a_zenoh_link_made_in_the_scope_is_closed_with_its_threads() -> None:
     assert zenoh_threads() - before
     assert scope.close() == []
     assert link.closed and bare.closed
-    deadline = time.monotonic() + 5.0
-    while zenoh_threads() - before and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not zenoh_threads() - before
+    wait_until(
+        lambda: not zenoh_threads() - before, 5.0, lambda: f"Zenoh's threads to end ({zenoh_threads() - before})"
+    )

@@ -25,6 +25,8 @@ from asyncdonkey import Poller, Vehicle, _precise_wait, _timerfd, clock
 from asyncdonkey.clock import Clock, DeadlineWaiter, get_clock
 from asyncdonkey.virtual_loop import VirtualClockLoop
 
+from ..waiting import wait_until
+
 LOOPS = [
     pytest.param(asyncio.SelectorEventLoop, id="asyncio"),
     pytest.param(uvloop.new_event_loop, id="uvloop"),
@@ -428,10 +430,7 @@ def test_poller_reads_in_its_own_thread_on_a_real_loop_and_stops_promptly():
     assert poller.sample is not None and poller.sample.value == poller.reads
     t0 = stamps[0]
     assert all(t - (t0 + k / 200) >= -1e-6 for k, t in enumerate(stamps) if k < 2)  # the first reads on time
-    deadline = time.monotonic() + 1.0
-    while any(t.name == "poll:imu" for t in threading.enumerate()) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not any(t.name == "poll:imu" for t in threading.enumerate())
+    wait_until(lambda: not any(t.name == "poll:imu" for t in threading.enumerate()), 1.0, "the poll:imu thread to end")
 
 
 @pytest.mark.realtime

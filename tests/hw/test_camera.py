@@ -10,6 +10,8 @@ import pytest
 from asyncdonkey.hw.camera import CameraError, CameraReader, to_rgb
 from asyncdonkey.testing.camera_models import frame_number, make_frame_bgr, write_test_video
 
+from ..waiting import wait_until
+
 
 @pytest.fixture
 def video(tmp_path):
@@ -143,11 +145,9 @@ def test_read_failures_are_counted_and_a_live_source_is_reopened(tmp_path):
     # An OpenCV image sequence reads like a live source: after the last image every read fails.
     r = CameraReader(str(tmp_path / "f_%03d.jpg"), reopen_after=3)
     r.start()
-    deadline = time.monotonic() + 3.0
     # wait for the frames after the second reopen too: on a loaded machine the test can see the reopen before
     # the reader thread has read the sequence again
-    while (r.reopens < 2 or r.frames < 9) and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: r.reopens >= 2 and r.frames >= 9, 3.0, lambda: f"2 reopens, 9 frames ({r.reopens}, {r.frames})")
     r.stop()
     assert r.reopens >= 2
     assert r.read_failures >= 6

@@ -31,13 +31,17 @@ from asyncdonkey.parts.odometry import (
 )
 from asyncdonkey.testing.serial_peers import EncoderPeer
 
+from ..waiting import await_until
+
 
 async def delivered(peer: EncoderPeer, tail: bytes, timeout: float = 1.0) -> None:
     """Wait (real time; virtual time stands still) until the model has received bytes ending in ``tail``."""
-    deadline = time.monotonic() + timeout
-    while not peer.received.endswith(tail):
-        assert time.monotonic() < deadline, f"model never received {tail!r}; got {bytes(peer.received)!r}"
-        await asyncio.sleep(0)
+    await await_until(
+        lambda: peer.received.endswith(tail),
+        timeout,
+        lambda: f"{tail!r} at the model (got {bytes(peer.received)!r})",
+        0,
+    )
 
 
 # ------------------------------------------------------------------------------------------- protocol
@@ -254,10 +258,7 @@ def test_watchdog_restarts_the_stream_after_a_board_ignored_it_while_booting():
             odom = Odometer(peer.path, mm_per_tick=10.0, watchdog_s=0.1)
             peer.set_speed(100.0)
             task = asyncio.create_task(odom.update())
-            deadline = time.monotonic() + 3.0
-            while odom.encoder.readings < 10:
-                assert time.monotonic() < deadline, "the stream never started"
-                await asyncio.sleep(0.01)
+            await await_until(lambda: odom.encoder.readings >= 10, 3.0, "the stream to start", 0.01)
             await odom.shutdown()
             await asyncio.wait_for(task, 1)
             await delivered(peer, b"c\n")

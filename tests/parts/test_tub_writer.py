@@ -18,6 +18,8 @@ import pytest
 from asyncdonkey import Vehicle
 from asyncdonkey.parts.tub import Tub, TubFileIO, TubFormatError, TubWiper, TubWriter
 
+from ..waiting import wait_until
+
 ALL_INPUTS = ["cam/image_array", "user/angle", "user/throttle", "user/mode", "rec", "n", "arr", "lst", "vec", "depth"]
 ALL_TYPES = ["image_array", "float", "float", "str", "boolean", "int", "nparray", "list", "vector", "gray16_array"]
 BASIC_INPUTS = ["cam/image_array", "user/angle", "user/throttle", "user/mode"]
@@ -238,9 +240,7 @@ def test_sync_point_flushes_data_before_the_manifests_name_it(tmp_path, has_sync
 def test_records_become_durable_within_the_sync_interval(tmp_path):
     w = TubWriter(tmp_path / "t", ["user/angle"], ["float"], sync_every=1000, sync_interval_s=0.05)
     w.run(0.5)
-    deadline = time.monotonic() + 2.0
-    while w.durable_index < 1 and time.monotonic() < deadline:
-        time.sleep(0.005)
+    wait_until(lambda: w.durable_index >= 1, 2.0, "the first record durable", step=0.005)
     assert w.durable_index == 1
     assert w.stats.durable_lag_max_ms < 1000
     w.shutdown()

@@ -26,8 +26,10 @@ or its process is gone).
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import os
 import shutil
 import sys
 import threading
@@ -214,13 +216,14 @@ def render_fleet(
     now: float,
     *,
     gone_after_s: float = 3.0,
-    width: int = 120,
+    width: int | None = None,
     sort: str = "name",
     stale_ms: float = 250.0,
     parts: bool = True,
 ) -> str:
     """The ``top`` screen as text: a header, one row per car (ordered by ``sort``: ``name``, ``latency``
-    slowest first, ``age`` oldest first) and, with ``parts``, its part times beneath."""
+    slowest first, ``age`` oldest first) and, with ``parts``, its part times beneath. Rows are cut at ``width``
+    columns (a terminal's width; ``None``: never, for a file or a pipe, which lose nothing by a long line)."""
     states = {
         name: car_state(doc, now - t, gone_after_s=gone_after_s, stale_ms=stale_ms) for name, (doc, t) in cars.items()
     }
@@ -246,15 +249,27 @@ def render_fleet(
             f" {_ms(doc.get('records'), '{:.0f}'):>6}"
             f" {_ms(doc.get('rtt_ms')):>7} {min(seen, 999.9):4.1f}s  {age_text}"
         )
-        lines.append(row[:width])
+        lines.append(row[:width] if width is not None else row)
         part_times = doc.get("parts") or {}
         if parts and part_times:
             slow = sorted(part_times.items(), key=lambda kv: -kv[1])
             text = "  ".join(f"{k} {v:.2f}" for k, v in slow)
-            lines.append(("    parts ms: " + text)[:width])
+            line = "    parts ms: " + text
+            lines.append(line[:width] if width is not None else line)
     if not cars:
         lines.append("(no car status yet: is a car publishing on this network, and are we connected to it?)")
     return "\n".join(lines)
+
+
+def screen_width(out: TextIO) -> int | None:
+    """The columns ``top`` may fill on ``out``: the terminal's width when ``out`` is a terminal (read on every
+    redraw, so a resized window is followed), ``None`` (no limit) when it is a file or a pipe."""
+    if not out.isatty():
+        return None
+    try:
+        return os.get_terminal_size(out.fileno()).columns
+    except (OSError, ValueError, io.UnsupportedOperation):  # a terminal-like stream without a size
+        return shutil.get_terminal_size((120, 24)).columns
 
 
 def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic) -> int:
@@ -281,12 +296,11 @@ def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], flo
         }
         if args.once is not None:
             time.sleep(args.once)
-            out.write(render_fleet(watcher.snapshot(), clock(), **view) + "\n")
+            out.write(render_fleet(watcher.snapshot(), clock(), width=screen_width(out), **view) + "\n")
             return 0
         while True:
-            width = shutil.get_terminal_size((120, 24)).columns
             screen = render_fleet(
-                watcher.snapshot(), clock(), gone_after_s=3 * max(args.every, 0.5), width=width, **view
+                watcher.snapshot(), clock(), gone_after_s=3 * max(args.every, 0.5), width=screen_width(out), **view
             )
             out.write(("\x1b[H\x1b[2J" if tty else "") + screen + "\n")
             out.flush()

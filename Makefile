@@ -1,11 +1,36 @@
-# The two commands of the quick start: `make run` (the simulated car) and `make test`.
-# Both create .venv on first use and install what they need into it. See docs/testing.md for the other test targets.
+# The two commands of the quick start: `make run` (the simulated car) and `make test`; `make` alone lists every
+# target (each target's `## ` comment is its line in `make help`).
+# Both create a venv on first use and install what they need into it. See docs/testing.md for the other test targets.
+.DEFAULT_GOAL := help
+
+# One venv per Python version, so that PYTHON picks the interpreter the tests run on: .venv for the default python3,
+# .venv<major><minor> for another (make test PYTHON=python3.13 uses .venv313, as .ci/run does). A VENV made by
+# another version than PYTHON's is refused with the command that fixes it, never used silently.
 PYTHON ?= python3
-VENV   ?= .venv
+VERSION_OF = $(shell $(1) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)
+PYVER  := $(call VERSION_OF,$(PYTHON))
+VENV   ?= $(if $(filter $(PYVER),$(call VERSION_OF,python3)),.venv,.venv$(subst .,,$(PYVER)))
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip -q --disable-pip-version-check
 
-.PHONY: run test test-fast test-loaded lint format bench clean
+ifeq ($(filter help clean,$(MAKECMDGOALS)),)
+ifeq ($(PYVER),)
+$(error PYTHON=$(PYTHON) does not run: name a Python 3.11, 3.12 or 3.13 interpreter, e.g. make test PYTHON=python3.13)
+endif
+VENV_PYVER := $(if $(wildcard $(PY)),$(call VERSION_OF,$(PY)))
+ifneq ($(VENV_PYVER),)
+ifneq ($(VENV_PYVER),$(PYVER))
+$(error $(VENV) was made by Python $(VENV_PYVER), but PYTHON=$(PYTHON) is Python $(PYVER): $(if $(filter file,$(origin VENV)),remove it with make clean and run make again,leave VENV unset (Python $(PYVER) gets .venv$(subst .,,$(PYVER))) or remove it first: make clean VENV=$(VENV)))
+endif
+endif
+endif
+
+.PHONY: help run test test-fast test-loaded test-aarch64 lint format bench dist clean
+
+help:  ## list the targets (what bare `make` does)
+	@echo "make <target> [PYTHON=python3.13] [ARGS=...] [PYTEST_ARGS=...]; venv for PYTHON=$(PYTHON): $(VENV)"
+	@grep -hE '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/^([a-zA-Z0-9_-]+):.*## (.*)$$/\1\t\2/' | \
+		awk -F '\t' '{ printf "  %-13s %s\n", $$1, $$2 }'
 
 $(VENV)/.base: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -46,13 +71,13 @@ FAST := not realtime and not browser and not donkeycar and not network and not s
 # ARGS go to `asyncdonkey run`: its own options first, then the car's after a lone --, e.g.
 # make run ARGS="-- --seconds 120" or make run ARGS="--hz 50 -- --laps 3" (docs/simulator.md lists them).
 # Afterwards the commands are in the venv: .venv/bin/asyncdonkey, .venv/bin/python (docs/cli.md).
-run: $(VENV)/.base
+run: $(VENV)/.base  ## drive the simulated car for 25 s (ARGS go to asyncdonkey run; docs/simulator.md)
 	$(VENV)/bin/asyncdonkey run examples/car.py $(ARGS)
 
 # The type check: mypy, strict on the safety, time and drive-core modules, elsewhere capped by .ci/mypy-ceiling.txt
 TYPECHECK := $(PY) .ci/mypy-ceiling
 
-test: $(VENV)/.test $(CHROMIUM)
+test: $(VENV)/.test $(CHROMIUM)  ## ruff, mypy and the whole suite (needs Chromium; about 9 min on 2 cores)
 	$(VENV)/bin/ruff check .
 	$(TYPECHECK)
 	$(PY) -m pytest $(PYTEST_ARGS)
@@ -60,7 +85,7 @@ test: $(VENV)/.test $(CHROMIUM)
 # The edit-and-test loop keeps pytest's rewritten test modules in __pycache__ (ignored by git) even where the
 # environment sets PYTHONDONTWRITEBYTECODE: without them each worker rewrites and compiles some 350 modules on every
 # run, and collecting takes 11 s instead of 3-4 s (docs/testing.md).
-test-fast: $(VENV)/.test
+test-fast: $(VENV)/.test  ## the deterministic tests on every core, no browser, sockets or processes (about 50 s)
 	$(VENV)/bin/ruff check .
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -n auto -m "$(FAST)" $(PYTEST_ARGS)
 
@@ -69,7 +94,7 @@ test-fast: $(VENV)/.test
 # them as soon as pytest returns (or is interrupted), and exits with pytest's status.
 BUSY := import os, itertools; parent = os.getppid(); any(os.getppid() != parent for _ in itertools.count())
 
-test-loaded: $(VENV)/.test $(CHROMIUM)
+test-loaded: $(VENV)/.test $(CHROMIUM)  ## the whole suite beside one busy process per core
 	$(VENV)/bin/ruff check .
 	@busy=""; \
 	for _ in $$(seq "$$(nproc)"); do $(PY) -c '$(BUSY)' >/dev/null 2>&1 & busy="$$busy $$!"; done; \
@@ -78,16 +103,30 @@ test-loaded: $(VENV)/.test $(CHROMIUM)
 	echo "test-loaded: $$(nproc) busy processes ($$busy ) beside the suite"; \
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-lint: $(VENV)/.test
+# The fast suite on the Raspberry Pi's architecture and Python: an arm64 Debian 12 root (Raspberry Pi OS Bookworm's
+# base), made once with debootstrap, runs make test-fast under qemu-user. Needs root; not in CI: it is slow (the
+# root ~7-15 min once, then the suite several times slower than here). What it proves and cannot: docs/raspberry-pi.md.
+test-aarch64:  ## the fast suite in an arm64 Debian 12 root under qemu-user (as root; slow; not in CI)
+	.ci/test-aarch64 $(PYTEST_ARGS)
+
+lint: $(VENV)/.test  ## ruff check, ruff format --check and the type check
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(TYPECHECK)
 
-format: $(VENV)/.test
+format: $(VENV)/.test  ## ruff format the sources
 	$(VENV)/bin/ruff format .
 
-bench: $(VENV)/.test
+bench: $(VENV)/.test  ## the benchmarks beside Donkeycar; rewrites docs/benchmarks.md
 	$(PY) benchmarks/run_all.py --write-docs
 
-clean:
-	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache .mypy_cache build *.egg-info src/*.egg-info
+# The wheel and the sdist, built by the standard frontend (python -m build, in an isolated environment with the
+# setuptools pyproject.toml asks for); the version is asyncdonkey.__version__. Install the wheel anywhere with
+# pip install 'dist/asyncdonkey-<version>-py3-none-any.whl[mcap]' (docs/install.md).
+dist: $(VENV)/.base  ## build the wheel and the sdist into dist/
+	$(PIP) install 'build>=1.2'
+	rm -rf dist
+	$(PY) -m build --outdir dist .
+
+clean:  ## remove the venvs, the caches and the build output
+	rm -rf $(VENV) .venv3[0-9]* .pytest_cache .ruff_cache .mypy_cache build dist *.egg-info src/*.egg-info

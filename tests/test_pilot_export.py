@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 
+from asyncdonkey.extras import install_command
 from asyncdonkey.parts.sim import Simulator
 from asyncdonkey.parts.sim.training import drive
 from asyncdonkey.pilot_export import (
@@ -176,7 +177,7 @@ def test_importing_the_module_does_not_need_onnx(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    assert "needs the quantize extra" in out.stdout and "pip install 'asyncdonkey[quantize]'" in out.stdout
+    assert "needs the quantize extra" in out.stdout and install_command("quantize") in out.stdout
 
 
 def test_committed_simulator_pilot_drives_a_clean_lap():

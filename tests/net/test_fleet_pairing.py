@@ -16,6 +16,7 @@ import pytest
 
 from asyncdonkey.commands.cli import main
 from asyncdonkey.commands.zenoh import SORT_KEYS, add_zenoh_parsers
+from asyncdonkey.extras import install_command
 from asyncdonkey.parts.zenoh.fleet import SORT_KEYS as FLEET_SORT_KEYS
 from asyncdonkey.parts.zenoh.fleet import car_state, render_fleet
 from asyncdonkey.parts.zenoh.pairing import PairExists, make_fleet
@@ -122,7 +123,7 @@ def test_a_missing_extra_prints_the_install_line(monkeypatch, capsys, tmp_path, 
     monkeypatch.setitem(sys.modules, module, None)  # import fails as if it were not installed
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert "pip install 'asyncdonkey[zenoh]'" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert install_command("zenoh") in err and len(err.splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "out").exists()
 
 

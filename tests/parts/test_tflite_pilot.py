@@ -2,6 +2,7 @@
 with TensorFlow by examples/make_tflite_models.py and committed in tests/models/; here only LiteRT runs."""
 
 import functools
+import re
 import sys
 import threading
 from pathlib import Path
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from asyncdonkey import Vehicle
+from asyncdonkey.extras import install_command
 from asyncdonkey.parts.pilot import OnnxPilot, PilotModelError, load_pilot
 from asyncdonkey.parts.pilot_base import FrameEncoder
 from asyncdonkey.parts.sim import Simulator
@@ -198,10 +200,11 @@ def test_missing_runtime_says_what_to_install(monkeypatch):
     for module in ("ai_edge_litert.interpreter", "tflite_runtime.interpreter"):
         monkeypatch.setitem(sys.modules, module, None)  # as if not installed
     with pytest.raises(
-        ImportError, match=r"running \.tflite pilots needs the tflite extra .*: pip install 'asyncdonkey\[tflite\]'$"
+        ImportError,
+        match=r"running \.tflite pilots needs the tflite extra .*: " + re.escape(install_command("tflite")) + "$",
     ):
         tflite_interpreter()
-    with pytest.raises(ImportError, match=r"pip install 'asyncdonkey\[tflite\]'"):
+    with pytest.raises(ImportError, match=re.escape(install_command("tflite"))):
         load_pilot(MODELS / "probe_pair.tflite")
 
 

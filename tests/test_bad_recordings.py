@@ -5,7 +5,7 @@ The files are small real recordings (a tub written by the project's tub writer, 
 with one chunk per record), damaged by hypothesis (a flipped bit anywhere, or the file cut anywhere) and by
 hand where the damage must hit one place (a chunk's data, a record's length, a schema). Each command runs
 in-process through ``asyncdonkey``'s ``main()``, as from the shell: it must exit 0 or 2, and with 2 print exactly
-one line, ``asyncdonkey: error: ...``, naming the damaged file.
+one line, ``asyncdonkey <command>: error: ...``, naming the damaged file.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 import shutil
 import struct
 from pathlib import Path
@@ -79,7 +80,8 @@ def assert_one_line_or_success(status: int, err: str, damaged: Path) -> None:
     if status == 2:
         lines = err.strip().splitlines()
         assert len(lines) == 1, err
-        assert lines[0].startswith("asyncdonkey: error: ") and str(damaged) in lines[0], lines[0]
+        assert re.match(r"asyncdonkey (replay|convert|report): error: ", lines[0]), lines[0]
+        assert str(damaged) in lines[0], lines[0]
 
 
 def all_commands(recording: Path, good: Path, out: Path) -> list[tuple[int, str]]:

@@ -94,14 +94,17 @@ def run_command(tmp_path: Path, manage_py: Path, *, missing: str = "", module: s
 
 
 def asyncdonkey_lines(err: str) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith("asyncdonkey:")]
+    """The command's own lines (Donkeycar's banner and logging aside); each must be an error line."""
+    lines = [line for line in err.splitlines() if line.startswith("asyncdonkey")]
+    assert all(line.startswith("asyncdonkey donkey: error: manage.py: ") for line in lines), lines
+    return lines
 
 
 @pytest.mark.subprocess
 def test_a_missing_picamera2_is_one_line_naming_the_setting_and_both_answers(tmp_path):
     manage_py = create_car(tmp_path / "mycar", DRIVE_TRAIN_TYPE="MOCK")  # the template's camera: PICAM
     done = run_command(tmp_path, manage_py, missing="picamera2")
-    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.returncode == 2, done.stdout + done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     [line] = asyncdonkey_lines(done.stderr)
     assert 'CAMERA_TYPE = "PICAM"' in line and "picamera2" in line
@@ -120,7 +123,7 @@ NUMPY_1_SIMPLEJPEG = (
 def test_picamera2_built_for_numpy_1_is_one_line_naming_simplejpeg(tmp_path):
     manage_py = create_car(tmp_path / "mycar", DRIVE_TRAIN_TYPE="MOCK")
     done = run_command(tmp_path, manage_py, module=NUMPY_1_SIMPLEJPEG)
-    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.returncode == 2, done.stdout + done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     [line] = asyncdonkey_lines(done.stderr)
     assert "numpy.dtype size changed" in line and "pip install --force-reinstall --no-deps simplejpeg" in line
@@ -130,7 +133,7 @@ def test_picamera2_built_for_numpy_1_is_one_line_naming_simplejpeg(tmp_path):
 def test_the_line_names_the_cars_own_drivetrain_setting(tmp_path):
     manage_py = create_car(tmp_path / "mycar", CAMERA_TYPE="MOCK", DRIVE_TRAIN_TYPE="PWM_STEERING_THROTTLE")
     done = run_command(tmp_path, manage_py, missing="Adafruit_PCA9685")
-    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.returncode == 2, done.stdout + done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     [line] = asyncdonkey_lines(done.stderr)
     assert 'DRIVE_TRAIN_TYPE = "PWM_STEERING_THROTTLE"' in line and "Adafruit_PCA9685" in line

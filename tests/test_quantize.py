@@ -97,7 +97,7 @@ def test_errors_are_one_line_with_exit_2(tub, model, tmp_path, capsys):
     for argv, fragment in cases:
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
-        assert err.startswith("asyncdonkey: error:") and fragment in err and "\n" not in err
+        assert err.startswith("asyncdonkey quantize: error:") and fragment in err and "\n" not in err
     with pytest.raises(TubNotFoundError):
         quantize_pilot(model, tmp_path / "none", tmp_path / "x.onnx")
     with pytest.raises(QuantizeError, match="is the model itself"):

@@ -139,7 +139,7 @@ def test_the_zenoh_listen_refusal_exits_2_in_one_line_and_stops_listening() -> N
     port = free_port()
     out = run_car("run", CAR, "--", "--pilot", "remote", "--zenoh-listen", f"tcp/0.0.0.0:{port}")
     assert_one_line(
-        out, 2, "asyncdonkey: error:", "ZenohConfigError", f"listens on tcp/0.0.0.0:{port} without TLS", "refusing"
+        out, 2, "asyncdonkey run: error:", "ZenohConfigError", f"listens on tcp/0.0.0.0:{port} without TLS", "refusing"
     )
     assert_nothing_listens_on(port)
 
@@ -147,7 +147,9 @@ def test_the_zenoh_listen_refusal_exits_2_in_one_line_and_stops_listening() -> N
 @pytest.mark.subprocess
 def test_a_value_error_of_the_car_file_exits_2_in_one_line() -> None:
     out = run_car("run", CAR, "--", "--pilot", "remote")
-    assert_one_line(out, 2, "asyncdonkey: error:", "build() raised ValueError", "--pilot remote needs --zenoh-config")
+    assert_one_line(
+        out, 2, "asyncdonkey run: error:", "build() raised ValueError", "--pilot remote needs --zenoh-config"
+    )
 
 
 @pytest.mark.subprocess
@@ -201,9 +203,8 @@ def test_a_part_whose_start_raises_is_a_part_failure_and_the_car_exits(tmp_path:
     out = run_car("run", str(car), "--duration", "10", "--", str(port), str(marker))
     assert out.status == 1, out.err
     assert "Traceback" not in out.err, out.err
-    assert (
-        out.lines[-1] == "asyncdonkey: part 'Lidar' failed in its background task: OSError: no lidar on /dev/ttyUSB0"
-    ), out.err
+    lidar = "part 'Lidar' failed in its background task: OSError: no lidar on /dev/ttyUSB0"
+    assert out.lines[-1] == f"asyncdonkey run: error: {lidar}", out.err
     assert marker.read_text() == "closed: socket -1, serial open False"
     assert_nothing_listens_on(port)
 
@@ -227,7 +228,7 @@ def test_a_drive_that_refuses_to_start_exits_2_and_shuts_the_parts_down(tmp_path
     out = run_car("run", str(car), "--", str(port), str(marker))
     assert out.status == 2, out.err
     assert "Traceback" not in out.err, out.err
-    errors = [line for line in out.lines if line.startswith("asyncdonkey: error:")]
+    errors = [line for line in out.lines if line.startswith("asyncdonkey run: error:")]
     assert errors == out.lines[-1:], out.err  # one error line, the last (the drive's empty report comes before)
     assert "safety_process=True" in errors[0], out.err
     assert marker.read_text() == "closed: socket -1, serial open False"

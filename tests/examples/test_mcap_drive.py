@@ -209,4 +209,4 @@ def test_report_command_on_mcap_and_on_a_tub(drive, tmp_path, capsys):
     assert "Record intervals" in (tmp_path / "t.html").read_text()
     capsys.readouterr()
     assert cli_main(["report", str(tmp_path / "r.html")]) == 2
-    assert capsys.readouterr().err.startswith("asyncdonkey: error:")
+    assert capsys.readouterr().err.startswith("asyncdonkey report: error:")

@@ -378,7 +378,7 @@ def test_a_second_car_on_the_chip_is_refused_and_after_kill_9_of_the_first_a_new
         assert second.returncode == 2
         lines = second.stderr.splitlines()
         assert len(lines) == 1, second.stderr
-        assert lines[0].startswith("asyncdonkey: error: lock_car.py: build() raised I2CDeviceInUse: ")
+        assert lines[0].startswith("asyncdonkey run: error: lock_car.py: build() raised I2CDeviceInUse: ")
         assert (
             f"PCA9685 at 0x40 on I2C bus 1 is in use by process {first.proc.pid} (asyncdonkey run lock_car.py "
             f"--duration 60 -- {endpoint}), started "

@@ -37,12 +37,22 @@ from ..buildscope import BuildScope, collecting
 from ..errors import AsyncdonkeyError
 from ..extras import MissingExtra, extra_for_module
 from ..loop import PartError, Vehicle, run_blocking
-from ..options import BadValue, non_negative_int, option, positive_float
+from ..options import BadValue, positive_float
 from ..safety.process import SafetyProcessError
+from .drive_options import add_drive_options
 
 __all__ = ["CarFileError", "car_rate_hz", "load_car", "main"]
 
 EXIT_USAGE = 2
+
+
+def error_prefix(command: str | None) -> str:
+    """The start of every error line a command prints, as argparse starts its own: ``asyncdonkey run: error:``
+    (the command named, so a line in a log says which command failed)."""
+    return f"asyncdonkey {command}: error:" if command else "asyncdonkey: error:"
+
+
+RUN_ERROR = error_prefix("run")
 
 
 class CarFileError(AsyncdonkeyError):
@@ -146,28 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     run = sub.add_parser("run", help="drive a car file (a Python file whose build() returns a Vehicle)")
     run.add_argument("car", help="path to the car file (a .py file defining build()), e.g. examples/car.py")
-    run.add_argument(
-        "--hz",
-        type=option(positive_float),
-        default=None,
-        metavar="HZ",
-        help="drive loop rate in Hz, a positive number (default: the file's DRIVE_LOOP_HZ, else 20)",
-    )
-    run.add_argument(
-        "--max-loops", type=option(non_negative_int), default=None, metavar="N", help="stop after N ticks (0 or more)"
-    )
-    run.add_argument(
-        "--duration", type=option(positive_float), default=None, metavar="S", help="stop after S seconds (S > 0)"
-    )
-    run.add_argument(
-        "--verbose",
-        action="store_true",
-        help="jitter warnings, the profiler table every 200 loops, and the traceback of a part failure",
-    )
-    run.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
-    run.add_argument(
-        "--precise", action="store_true", help="spin the last stretch before each tick: tighter ticks for more CPU"
-    )
+    add_drive_options(run, default_rate="the file's DRIVE_LOOP_HZ, else 20")
     run.epilog = (
         "Arguments after a lone -- are passed to the car's build(): asyncdonkey run examples/car.py -- --seconds 5 "
         '(with make: make run ARGS="-- --seconds 5").'
@@ -203,7 +192,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             vehicle, module = load_car(args.car, car_args)
             rate = args.hz if args.hz is not None else car_rate_hz(module, args.car)
         except (CarFileError, MissingExtra) as exc:
-            print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+            print(f"{RUN_ERROR} {exc}", file=sys.stderr)
             return _refused(opened, EXIT_USAGE)
         except SystemExit as exc:  # the car's own option parser: its usage error or --help, already printed
             return _refused(opened, _exit_status(exc))
@@ -218,23 +207,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )
     except PartError as exc:
         if isinstance(exc.__cause__, MissingExtra):  # a part importing its extra when it starts
-            print(f"asyncdonkey: error: {exc.part}: {exc.__cause__}", file=sys.stderr)
+            print(f"{RUN_ERROR} {exc.part}: {exc.__cause__}", file=sys.stderr)
             return _leave(EXIT_USAGE)
         if args.verbose:
             traceback.print_exception(exc, file=sys.stderr)
-        print(f"asyncdonkey: {exc}", file=sys.stderr)
+        print(f"{RUN_ERROR} {exc}", file=sys.stderr)
         return _leave(1)
     except (AsyncdonkeyError, SafetyProcessError) as exc:  # the drive refused to start; run() shut the parts down
         if args.verbose:
             traceback.print_exception(exc, file=sys.stderr)
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"{RUN_ERROR} {exc}", file=sys.stderr)
         return _leave(EXIT_USAGE)
     except Exception:  # a fault of ours: its traceback, and still no process left running
         traceback.print_exc(file=sys.stderr)
         return _leave(1)
     if report.shutdown_abandoned:
         print(
-            f"asyncdonkey: shutdown of {', '.join(map(repr, report.shutdown_abandoned))} did not finish in time",
+            f"{RUN_ERROR} shutdown of {', '.join(map(repr, report.shutdown_abandoned))} did not finish in time",
             file=sys.stderr,
         )
         return _leave(1)
@@ -311,6 +300,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "run":
             print(_unknown_run_options(parser, args.car, unknown), file=sys.stderr)
             return EXIT_USAGE
+        if args.command:  # named like argparse's own errors in that command: asyncdonkey replay: error: ...
+            given, see = " ".join(unknown), f"see asyncdonkey {args.command} --help"
+            print(f"{error_prefix(args.command)} unrecognized arguments: {given} ({see})", file=sys.stderr)
+            return EXIT_USAGE
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.car_args = car_args
     try:
@@ -320,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
             _raise_if_missing_extra(exc, f"asyncdonkey {args.command}")
             raise
     except MissingExtra as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"{error_prefix(args.command)} {exc}", file=sys.stderr)
         return EXIT_USAGE
 
 

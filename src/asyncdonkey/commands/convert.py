@@ -324,7 +324,7 @@ def convert_main(args: argparse.Namespace) -> int:
             args.source, args.destination, image_key=args.image_key, channels=args.channels, only_when=args.only_when
         )
     except (ConvertError, TubError, OSError, ImportError) as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"asyncdonkey convert: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     print(res.summary())
     return 0

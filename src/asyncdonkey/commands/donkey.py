@@ -46,8 +46,10 @@ from ..errors import PartError
 from ..extras import MissingExtra, install_command
 from ..loop import DriveReport, Vehicle
 from ..memory import Memory
-from ..options import non_negative_int, option, positive_float
+from .donkey_errors import TENSORFLOW_HINT as _TENSORFLOW_HINT
+from .donkey_errors import car_error, check_start_values
 from .donkey_tflite import tflite_pilots_replaced
+from .drive_options import add_drive_options
 
 __all__ = [
     "DonkeycarVehicle",
@@ -62,6 +64,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 EXIT_USAGE = 2
+#: the exit status of a car interrupted by Ctrl-C before it drove (128 + SIGINT), as ``asyncdonkey run``'s
+EXIT_INTERRUPTED = 130
+#: every error line the command prints starts so (as argparse's usage errors do)
+ERROR = "asyncdonkey donkey: error:"
 
 #: where Donkeycar code looks its Vehicle and Memory up: the modules, and the package's re-exports
 #: (``dk.vehicle.Vehicle()`` in the templates, ``dk.Vehicle()`` in its tests)
@@ -99,6 +105,7 @@ class DriveOptions:
     duration: float | None = None
     verbose: bool = False
     use_uvloop: bool = True
+    precise: bool = False
     #: the report of every drive the car ran, in order (a ``manage.py`` normally runs one)
     reports: list[DriveReport] = field(default_factory=list)
 
@@ -142,12 +149,15 @@ class DonkeycarVehicle(Vehicle):
         rate = o.rate_hz if o.rate_hz is not None else rate_hz
         loops = o.max_loop_count if o.max_loop_count is not None else max_loop_count
         duration = o.duration if o.duration is not None else kwargs.pop("duration", None)
+        check_start_values({"rate_hz": rate, "max_loop_count": loops}, sys._getframe(1))
         kwargs.setdefault("use_uvloop", o.use_uvloop)
+        if o.precise:
+            kwargs["precise"] = True
         before = self.last_report
         try:
             return super().start(rate, loops, verbose or o.verbose, duration=duration, **kwargs)
         finally:
-            if self.last_report is not before:  # a drive ran (it may have ended in an error)
+            if self.last_report is not None and self.last_report is not before:  # a drive ran (maybe to an error)
                 o.reports.append(self.last_report)
 
 
@@ -241,11 +251,7 @@ def add_donkey_parser(subparsers: Any) -> argparse.ArgumentParser:
         "Everything after the car file is the car's own arguments, e.g. `asyncdonkey donkey manage.py drive "
         "--js`. The car runs in its own directory, as `python manage.py` does when run from there.",
     )
-    p.add_argument("--hz", type=option(positive_float), default=None, help="drive loop rate (default: the car's)")
-    p.add_argument("--max-loops", type=option(non_negative_int), default=None, help="stop after N ticks")
-    p.add_argument("--duration", type=option(positive_float), default=None, help="stop after S seconds")
-    p.add_argument("--verbose", action="store_true", help="jitter warnings and the profiler table every 200 loops")
-    p.add_argument("--no-uvloop", action="store_true", help="use the standard asyncio loop")
+    add_drive_options(p, default_rate="the car's DRIVE_LOOP_HZ, as manage.py passes it to V.start")
     p.add_argument("car", help="the car's manage.py (made by `donkey createcar`)")
     p.add_argument(
         "manage_args", nargs=argparse.REMAINDER, metavar="...", help="the car's own arguments, e.g. drive --js"
@@ -254,16 +260,21 @@ def add_donkey_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def donkey_main(args: argparse.Namespace) -> int:
-    """Run the ``donkey`` subcommand; returns the exit status."""
+    """Run the ``donkey`` subcommand; returns the exit status.
+
+    Every error is one line, ``asyncdonkey donkey: error: <file>: <what is wrong>``: the car's mistakes (a file,
+    a setting, a model, a missing module) with status 2 before it drove, a part failing while driving with
+    status 1, as ``asyncdonkey run`` does. ``--verbose`` adds the traceback.
+    """
     car = Path(args.car)
     if not car.is_file():
-        print(f"asyncdonkey: error: car file {str(car)!r} not found", file=sys.stderr)
+        print(f"{ERROR} car file {str(car)!r} not found", file=sys.stderr)
         return EXIT_USAGE
     try:
         importlib.import_module("donkeycar")
     except ImportError as exc:
         print(
-            f"asyncdonkey: error: {car} is a Donkeycar car, but Donkeycar cannot be imported ({exc});"
+            f"{ERROR} {car} is a Donkeycar car, but Donkeycar cannot be imported ({exc});"
             " install it into this environment (see docs/donkeycar.md)",
             file=sys.stderr,
         )
@@ -274,22 +285,32 @@ def donkey_main(args: argparse.Namespace) -> int:
         duration=args.duration,
         verbose=args.verbose,
         use_uvloop=not args.no_uvloop,
+        precise=args.precise,
     )
     try:
         run_manage_py(car, list(args.manage_args), options)
     except PartError as exc:
-        print(f"asyncdonkey: {exc}", file=sys.stderr)
+        _show_traceback(exc, args.verbose)
+        print(f"{ERROR} {exc}", file=sys.stderr)
         return 1
-    except (ImportError, ValueError) as exc:  # ValueError: numpy refusing a module built for numpy 1
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # the car's own code, its files, its model: one line, never a traceback
+        _show_traceback(exc, args.verbose)
         hint = missing_module_hint(exc)
-        if hint is None:
-            raise
-        logger.debug("the car's import that failed", exc_info=exc)
-        print(f"asyncdonkey: {car.name}: {hint}", file=sys.stderr)
-        return 1
+        print(f"{ERROR} {car.name}: {hint}" if hint else f"{ERROR} {car_error(exc, car)}", file=sys.stderr)
+        return EXIT_USAGE if not options.reports else 1
     if not options.reports:
         logger.info("asyncdonkey: %s ran without driving (it never called Vehicle.start)", car.name)
     return 0
+
+
+def _show_traceback(exc: BaseException, verbose: bool) -> None:
+    """The traceback behind a one-line error: printed with ``--verbose``, logged at debug level always."""
+    if verbose:
+        traceback.print_exception(exc, file=sys.stderr)
+    else:
+        logger.debug("the traceback of the error", exc_info=exc)
 
 
 # -- what a missing module means -----------------------------------------------------------------------------
@@ -302,10 +323,6 @@ _CAMERA_HINT = (
 _PCA9685_HINT = (
     'the drivetrain DRIVE_TRAIN_TYPE = "{drivetrain}" needs the {module} module, which is not installed: '
     'for a bench run set DRIVE_TRAIN_TYPE = "MOCK" in myconfig.py; on the car, pip install Adafruit_PCA9685'
-)
-_TENSORFLOW_HINT = (
-    "the pilot needs {module}, which is not installed: pip install tensorflow, or drive a .tflite model without "
-    "it (--type tflite_linear, docs/donkeycar.md)"
 )
 #: a missing module the car's own settings decide on -> the line that says so
 _SETTING_HINTS = {

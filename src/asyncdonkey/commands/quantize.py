@@ -304,7 +304,7 @@ def quantize_main(args: argparse.Namespace) -> int:
             image_key=args.image_key,
         )
     except (QuantizeError, TubError, OSError, ImportError) as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"asyncdonkey quantize: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     print(json.dumps(report.as_dict(), indent=2) if args.json else report.format_table())
     return 0

@@ -756,7 +756,7 @@ def replay_main(args: argparse.Namespace) -> int:
             image_key=args.image_key,
         )
     except (ReplayError, TubError, OSError) as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"asyncdonkey replay: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     finally:
         loop_logger.setLevel(level)

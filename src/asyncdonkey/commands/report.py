@@ -474,7 +474,7 @@ def report_main(args: argparse.Namespace) -> int:
     try:
         out = write_report(args.source, args.output)
     except (TubError, OSError, ValueError, ImportError) as exc:
-        print(f"asyncdonkey: error: {exc}", file=sys.stderr)
+        print(f"asyncdonkey report: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     print(out)
     return 0

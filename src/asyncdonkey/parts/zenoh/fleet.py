@@ -289,7 +289,7 @@ def top_main(args: Any, *, stream: TextIO | None = None, clock: Callable[[], flo
     watcher = FleetWatcher(session, args.key)
     tty = out.isatty()
     try:
-        view = {
+        view: dict[str, Any] = {
             "sort": getattr(args, "sort", "name"),
             "stale_ms": getattr(args, "stale_ms", 250.0),
             "parts": not getattr(args, "no_parts", False),

@@ -19,6 +19,9 @@ from .web_rig import ZERO_PULSE, WebCar, auth, driving, self_signed
 
 pytestmark = [pytest.mark.realtime, pytest.mark.network]
 
+#: a browser opening a page accepts HTML: only then does the token in the URL become a cookie and a redirect
+BROWSER = {"Accept": "text/html,application/xhtml+xml,*/*;q=0.8"}
+
 
 async def next_json(ws: aiohttp.ClientWebSocketResponse, key: str, timeout: float = 5.0) -> dict:
     """The next message from the server that has ``key``."""
@@ -45,7 +48,7 @@ async def test_without_the_token_everything_is_401_and_the_printed_url_sets_a_co
         assert exc.value.status == 401
         assert car.mem.get(["user/throttle"]) == [0.0]  # none of it drove
 
-        async with http.get(car.ctr.url, allow_redirects=False) as r:
+        async with http.get(car.ctr.url, headers=BROWSER, allow_redirects=False) as r:  # a browser opens it
             assert r.status == 302 and r.headers["Location"] == "/drive"  # the token leaves the address bar
             assert "HttpOnly" in r.headers["Set-Cookie"] and "SameSite=Strict" in r.headers["Set-Cookie"]
         async with http.get(base + "/drive") as r:  # the cookie now opens everything
@@ -67,7 +70,7 @@ async def test_served_over_https_the_page_and_its_websocket_drive_the_car(tmp_pa
         base = f"https://127.0.0.1:{port}"
         jar = aiohttp.CookieJar(unsafe=True)
         async with aiohttp.ClientSession(cookie_jar=jar, connector=aiohttp.TCPConnector(ssl=client_ctx)) as http:
-            async with http.get(car.ctr.url) as r:  # the token for a cookie, then the page
+            async with http.get(car.ctr.url, headers=BROWSER) as r:  # the token for a cookie, then the page
                 assert r.status == 200 and str(r.url) == base + "/drive" and "drive.js" in await r.text()
             async with http.ws_connect(base + "/wsDrive", headers={"Origin": base}) as ws:  # wss://
                 assert (await ws.receive_json())["control"] == "free"

@@ -3,10 +3,11 @@
 A car on a shared Wi-Fi is reachable by everyone on it, and Donkeycar's web controller lets any of them drive.
 Here every request needs the access token made when the server starts:
 
-* the URL printed at start-up carries it (``/drive?token=...``); opening it stores the token in a cookie
-  (``HttpOnly``, ``SameSite=Strict``) and redirects to the same page without it, so the token does not stay in
-  the address bar or the history;
-* scripts send it as ``?token=...`` on any request or as an ``Authorization: Token ...`` (or ``Bearer``) header;
+* the URL printed at start-up carries it (``/drive?token=...``); a browser opening it (a request that accepts
+  ``text/html``) gets the token stored in a cookie (``HttpOnly``, ``SameSite=Strict``) and is redirected to the
+  same page without it, so the token does not stay in the address bar or the history;
+* scripts send it as ``?token=...`` on any request (answered directly: a script keeps no cookie, so a redirect
+  would lose the token) or as an ``Authorization: Token ...`` (or ``Bearer``) header;
 * anything else gets ``401``, and its connection is closed: a client without the token cannot keep one open
   (see :mod:`.guard` for connections that never complete a request).
 
@@ -218,7 +219,7 @@ class Access:
             self._on_admit(request)
         if self.token is None:
             return await handler(request)
-        if TOKEN_PARAM in request.query and request.method == "GET" and not _is_websocket(request):
+        if TOKEN_PARAM in request.query and _is_page_navigation(request):
             # a browser opening the printed URL: keep the token in a cookie, drop it from the address bar
             query = {k: v for k, v in request.query.items() if k != TOKEN_PARAM}
             target = request.rel_url.with_query(query)
@@ -230,6 +231,15 @@ class Access:
 
 def _is_websocket(request: web.Request) -> bool:
     return request.headers.get("Upgrade", "").lower() == "websocket"
+
+
+def _is_page_navigation(request: web.Request) -> bool:
+    """A browser opening a page: a ``GET`` that accepts HTML (browsers send ``Accept: text/html,...`` when they
+    navigate; ``curl``, ``requests`` and ``aiohttp`` send ``*/*``). ``Sec-Fetch-Mode`` would say it better, but
+    browsers send it only to HTTPS and localhost, and a car is mostly reached over plain HTTP."""
+    if request.method != "GET" or _is_websocket(request):
+        return False
+    return request.headers.get("Sec-Fetch-Mode") == "navigate" or "text/html" in request.headers.get("Accept", "")
 
 
 class Sessions:

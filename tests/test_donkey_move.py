@@ -235,10 +235,11 @@ def test_a_car_drives_on_a_tflite_pilot_without_tensorflow(tmp_path):
     assert proc.returncode == 0, out
     assert "interpreter: TfLite (LiteRT, asyncdonkey)" in out, out
     assert "stopped by: loop limit reached (max_loop_count)" in out, out
-    # beside Donkeycar's <hostname>.local line, the addresses of this machine's interfaces, .local last
+    # beside Donkeycar's <hostname>.local line, the addresses of this machine's interfaces, .local, then loopback
     listed = out[out.index("LocalWebController (Donkeycar's), from a phone on the car's network:") :].splitlines()
     urls = [line.split()[0] for line in listed[1:] if line.startswith("  http://")]
-    assert urls and all(u.endswith(f":{port}/drive") for u in urls) and ".local:" in urls[-1], listed[:5]
+    assert urls and all(u.endswith(f":{port}/drive") for u in urls), listed[:5]
+    assert ".local:" in urls[-2] and urls[-1] == f"http://127.0.0.1:{port}/drive", listed[:5]
     ref_angle, ref_throttle = TflitePilot(MODELS / "donkey_small.tflite", offload=False).predict(seen)
     tub = DkTub(str(car / "data"), read_only=True)
     try:

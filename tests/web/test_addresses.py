@@ -119,8 +119,10 @@ def test_the_controller_prints_every_url_with_its_port_and_token_and_the_qr_code
         f"http://192.168.1.20:8887/drive?token={TOKEN}",
         f"http://172.17.0.1:8887/drive?token={TOKEN}",
         f"http://{socket.gethostname().split('.')[0]}.local:8887/drive?token={TOKEN}",
+        f"http://127.0.0.1:8887/drive?token={TOKEN}",  # a browser on the car, or on the laptop of a simulator
     ]
     assert "this computer only" in printed[1][1]
+    assert printed[3][1] == "a browser on this computer"
     qr = io.StringIO()
     segno.make(printed[0][0], error="L").terminal(out=qr, compact=True)
     assert qr.getvalue() in text  # the QR code is the first URL's
@@ -136,19 +138,25 @@ def test_a_loopback_only_host_prints_the_local_name_with_the_note():
     lines = out.getvalue().splitlines()
     assert lines[1].startswith("  http://") and ".local:8887/drive?token=" in lines[1]
     assert "no LAN address found" in lines[1]
-    assert not lines[2].startswith("  http")
+    assert lines[2] == f"  http://127.0.0.1:8887/drive?token={TOKEN}  (a browser on this computer)"
+    assert not lines[3].startswith("  http")
 
 
 @pytest.mark.parametrize(
     ("host", "expected"),
-    [("0.0.0.0", ["192.168.1.20"]), ("::", ["[2a02:810d::7]"]), ("", ["192.168.1.20", "[2a02:810d::7]"])],
+    [
+        ("0.0.0.0", ["192.168.1.20", "127.0.0.1"]),
+        ("::", ["[2a02:810d::7]", "[::1]"]),
+        ("", ["192.168.1.20", "[2a02:810d::7]", "127.0.0.1"]),
+    ],
 )
 def test_the_controller_prints_only_addresses_of_the_ip_versions_it_listens_on(host, expected):
     """The listener's IPv6 sockets are IPv6-only: ``0.0.0.0`` takes no IPv6 connection, ``::`` no IPv4 one."""
     ctr, _ = controller(host=host)
     ctr.interfaces = table(LOOPBACK, ("wlan0", UP, ["192.168.1.20", "2a02:810d::7", "fe80::1%3"]))
     hosts = [u.url.split("/")[2].rsplit(":", 1)[0] for u in ctr._urls()]
-    assert hosts == [*expected, f"{socket.gethostname().split('.')[0]}.local"]
+    local = f"{socket.gethostname().split('.')[0]}.local"
+    assert hosts == [*expected[:-1], local, expected[-1]]  # loopback last: a browser on this computer
 
 
 def test_a_controller_on_one_address_prints_that_address_only():

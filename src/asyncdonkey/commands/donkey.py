@@ -175,10 +175,10 @@ def _announce_web_part(part: Any) -> None:
     port = getattr(part, "port", None)
     if not isinstance(port, int):
         return
-    from ..parts.web.addresses import drive_urls  # here: the web package loads aiohttp, which only web cars need
+    from ..parts.web.addresses import drive_urls, loopback_url  # here: the web package loads aiohttp
 
     page = "/drive" if type(part).__name__ == "LocalWebController" else "/"
-    urls = drive_urls("http", port, page, versions=(4,))
+    urls = [*drive_urls("http", port, page, versions=(4,)), loopback_url("http", port, page, versions=(4,))]
     lines = [f"{type(part).__name__} (Donkeycar's), from a phone on the car's network:"]
     lines += [f"  {u.url}" + (f"  ({u.note})" if u.note else "") for u in urls]
     print("\n".join(lines), file=sys.stderr, flush=True)

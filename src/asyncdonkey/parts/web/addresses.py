@@ -24,7 +24,8 @@ What is offered, in order (:func:`reachable_hosts`):
    this computer reaches them;
 4. ``<hostname>.local``, last, as an extra.
 
-Loopback interfaces and addresses are never offered: a phone cannot reach them.
+Loopback interfaces and addresses are never offered for a phone: it cannot reach them. A browser on the car
+itself, or on the laptop that runs the simulator, can: :func:`loopback_url` is printed last, marked so.
 
 The table is a parameter (:data:`InterfaceTable`: rows of ``(name, flags, addresses)``), so tests describe a
 host's interfaces instead of depending on the machine's.
@@ -50,6 +51,7 @@ __all__ = [
     "InterfaceRow",
     "InterfaceTable",
     "drive_urls",
+    "loopback_url",
     "reachable_hosts",
     "system_interfaces",
 ]
@@ -91,6 +93,7 @@ _NO_LAN_NOTE = (
     "this name works only if mDNS (avahi) answers for the car"
 )
 _MDNS_NOTE = "if the phone resolves mDNS .local names"
+_LOOPBACK_NOTE = "a browser on this computer"
 
 
 @dataclass(frozen=True)
@@ -164,6 +167,13 @@ def drive_urls(
     # with only bridges, where the .local name is the better first guess)
     first = next((i for i, u in enumerate(urls) if u.reachable), 0)
     return [urls[first], *urls[:first], *urls[first + 1 :]] if urls else []
+
+
+def loopback_url(scheme: str, port: int, path: str, versions: Collection[int] = (4, 6)) -> DriveUrl:
+    """The URL a browser on this computer opens: ``127.0.0.1`` when the server takes IPv4 (a wildcard listener
+    takes loopback too), ``[::1]`` when it listens on IPv6 alone. Never first: it is no use to a phone."""
+    host = "127.0.0.1" if 4 in versions else "[::1]"
+    return DriveUrl(f"{scheme}://{host}:{port}{path}", reachable=False, note=_LOOPBACK_NOTE)
 
 
 def _rank(text: str) -> int | None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from typing import TextIO
 
-from .addresses import WILDCARD_VERSIONS, DriveUrl, InterfaceTable, drive_urls, system_interfaces
+from .addresses import WILDCARD_VERSIONS, DriveUrl, InterfaceTable, drive_urls, loopback_url, system_interfaces
 from .auth import TOKEN_PARAM
 
 __all__ = ["Announcer"]
@@ -35,11 +35,14 @@ class Announcer:
         self.interfaces: InterfaceTable = system_interfaces
 
     def urls(self, host: str, port: int, token: str | None, *, secure: bool) -> list[DriveUrl]:
-        """The drive URLs to print, the one for the QR code first (:mod:`.addresses`)."""
+        """The drive URLs to print, the one for the QR code first (:mod:`.addresses`); a server listening on every
+        interface listens on loopback too, so its ``127.0.0.1`` URL comes last, for a browser on this computer."""
         scheme = "https" if secure else "http"
         query = f"?{TOKEN_PARAM}={token}" if token else ""
         if host in WILDCARD_VERSIONS:
-            return drive_urls(scheme, port, f"/drive{query}", self.interfaces, None, WILDCARD_VERSIONS[host])
+            versions = WILDCARD_VERSIONS[host]
+            found = drive_urls(scheme, port, f"/drive{query}", self.interfaces, None, versions)
+            return [*found, loopback_url(scheme, port, f"/drive{query}", versions)]
         bracketed = f"[{host}]" if ":" in host else host
         return [DriveUrl(f"{scheme}://{bracketed}:{port}/drive{query}")]
 

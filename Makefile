@@ -13,7 +13,8 @@ VENV   ?= $(if $(filter $(PYVER),$(call VERSION_OF,python3)),.venv,.venv$(subst 
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip -q --disable-pip-version-check
 
-ifeq ($(filter help clean,$(MAKECMDGOALS)),)
+# checked for every goal but help (bare make) and clean, which must work whatever the venv
+ifneq ($(filter-out help clean,$(or $(MAKECMDGOALS),help)),)
 ifeq ($(PYVER),)
 $(error PYTHON=$(PYTHON) does not run: name a Python 3.11, 3.12 or 3.13 interpreter, e.g. make test PYTHON=python3.13)
 endif

@@ -11,7 +11,7 @@ An optional module-level ``DRIVE_LOOP_HZ`` (Donkeycar's config name) sets the de
 Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type, a ``DRIVE_LOOP_HZ`` that
 is not a rate) and bad option values print one line and exit with status 2, without a traceback: the user needs
 the file and line, or the option and what it expects, not our stack. So does a missing extra, in any command
-(:class:`~asyncdonkey.extras.MissingExtra`: the feature and its ``pip install 'asyncdonkey[extra]'`` line). An
+(:class:`~asyncdonkey.extras.MissingExtra`: the feature and the command that installs its extra). An
 option ``run`` does not know (``--seconds 5`` meant for the car) is named, with where car options go (after
 ``--``) and ``run``'s own options. A part failing while driving prints its one-line error and exits with status 1;
 ``--verbose`` adds the traceback.

@@ -20,7 +20,7 @@ After writing, the INT8 model is loaded as a pilot (the same load-time checks as
 on the calibration frames: the report gives how far the INT8 answers are from the float ones and what each costs
 here. Whether INT8 pays depends on the model and the CPU: see ``benchmarks/pilot.py`` and docs/pilot.md.
 
-Needs the ``onnx`` package (onnxruntime's quantization tools use it): ``pip install 'asyncdonkey[quantize]'``.
+Needs the ``onnx`` package (onnxruntime's quantization tools use it): the ``quantize`` extra (``docs/install.md``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Memory channels over Zenoh: an off-board pilot, a fleet view, with true data ages across the network.
 
-Needs the ``zenoh`` extra (``pip install 'asyncdonkey[zenoh]'``). See ``docs/scale-out.md``.
+Needs the ``zenoh`` extra (``pip install -e '.[zenoh]'`` in a checkout; ``docs/install.md``). See ``docs/scale-out.md``.
 
 * :class:`ZenohLink`, :func:`zenoh_config` — one session and the key prefix of a car's channels.
 * :class:`ZenohPublisher`, :class:`ZenohSubscriber` — the parts (``group=PILOT_COMMAND``: the remote

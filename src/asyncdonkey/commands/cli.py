@@ -4,12 +4,13 @@ The car file convention: a Python file that defines ``build()`` returning a :cla
 (a Donkeycar ``Vehicle`` is accepted too and converted). If ``build`` takes a parameter, it receives the
 arguments that follow ``--`` on the command line, so a car can have options of its own::
 
-    asyncdonkey run car.py --hz 20 --duration 30 -- --pilot models/pilot.onnx
+    asyncdonkey run examples/car.py --hz 20 --duration 30 -- --pilot examples/models/sim_pilot.tflite
 
 An optional module-level ``DRIVE_LOOP_HZ`` (Donkeycar's config name) sets the default rate.
 
 Mistakes in the car file (missing, a syntax error, no ``build``, a wrong return type, a ``DRIVE_LOOP_HZ`` that
-is not a rate) and bad option values print one line and exit with status 2, without a traceback: the user needs
+is not a rate) and bad option values print one line (``asyncdonkey run: error: ...``: every command's error
+lines name the command, :func:`error_prefix`) and exit with status 2, without a traceback: the user needs
 the file and line, or the option and what it expects, not our stack. So does a missing extra, in any command
 (:class:`~asyncdonkey.extras.MissingExtra`: the feature and the command that installs its extra). An
 option ``run`` does not know (``--seconds 5`` meant for the car) is named, with where car options go (after

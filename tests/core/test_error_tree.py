@@ -10,7 +10,6 @@ import ast
 import importlib
 import inspect
 import pkgutil
-import warnings
 from pathlib import Path
 from types import ModuleType
 
@@ -26,12 +25,10 @@ OUTSIDE_THE_ROOT = {PartInterrupted}
 def _every_module() -> list[ModuleType]:
     """Every module of the package, imported; ``__main__`` modules are skipped (importing one runs the CLI)."""
     modules = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # the old import paths of moved modules warn
-        for info in pkgutil.walk_packages(asyncdonkey.__path__, "asyncdonkey."):
-            if info.name.rsplit(".", 1)[-1] == "__main__":
-                continue
-            modules.append(importlib.import_module(info.name))
+    for info in pkgutil.walk_packages(asyncdonkey.__path__, "asyncdonkey."):
+        if info.name.rsplit(".", 1)[-1] == "__main__":
+            continue
+        modules.append(importlib.import_module(info.name))
     return modules
 
 
@@ -42,7 +39,7 @@ def _public_exceptions() -> dict[str, type[BaseException]]:
         for name, obj in vars(module).items():
             if name.startswith("_") or not inspect.isclass(obj) or not issubclass(obj, BaseException):
                 continue
-            if obj.__module__ == module.__name__:  # defined here, not imported (moved-module aliases included once)
+            if obj.__module__ == module.__name__:  # defined here, not imported
                 found[f"{obj.__module__}.{name}"] = obj
     return found
 

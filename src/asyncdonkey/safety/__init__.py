@@ -4,7 +4,7 @@ What lives here:
 
 * :mod:`asyncdonkey.safety.watchdog` — the in-process watchdog, the fast first line: a thread beside the loop
   that writes an actuator's safe state when its command deadline passes, even while a sync part holds the loop
-  thread (the old path ``asyncdonkey.watchdog`` is an alias of it);
+  thread;
 * :mod:`asyncdonkey.safety.guard` — the safety process: a separate interpreter with its own handle on each
   actuator's bus, watching command deadlines, the drive's heartbeat and the car process's life (it runs as
   ``python -I guard.py``, so it imports nothing but the standard library and smbus2);

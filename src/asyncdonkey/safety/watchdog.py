@@ -47,7 +47,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ActuatorRuntime", "Watchdog"]
 
-logger = logging.getLogger("asyncdonkey.watchdog")  # its name before the move to asyncdonkey.safety, kept
+logger = logging.getLogger("asyncdonkey.watchdog")  # the name its log lines have always had
 
 #: The longest the watchdog sleeps without a deadline to wait for (it is poked when one appears).
 _IDLE_WAKE_S = 1.0

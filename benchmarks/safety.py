@@ -41,8 +41,8 @@ sys.path.insert(0, str(ROOT / "examples"))
 sys.path.insert(0, str(ROOT / "tests" / "safety"))
 
 from asyncdonkey import Contracts, Memory, Vehicle  # noqa: E402
+from asyncdonkey.core.plan import build_entry, checked_store  # noqa: E402
 from asyncdonkey.loop import run_blocking  # noqa: E402
-from asyncdonkey.plan import build_entry, checked_store  # noqa: E402
 from machine_info import describe  # noqa: E402
 
 WINDOW_S = 0.25

@@ -26,7 +26,7 @@ bytecodes executed per tick in the code of the two ``drive.py`` files (a tracer 
 ticks; the difference over 200 is the per-tick count, without the drive's start and end). It counts
 instructions, not their cost, but a refactor that keeps the hot path's bytecode keeps its cost.
 
-    cp src/asyncdonkey/drive.py /tmp/drive_before.py      # before the change
+    cp src/asyncdonkey/core/drive.py /tmp/drive_before.py      # before the change
     python benchmarks/tick_ab.py --before /tmp/drive_before.py --rounds 30
     python benchmarks/tick_ab.py --before /tmp/drive_before.py --opcodes
 
@@ -97,8 +97,10 @@ CONFIGS = {  # name: (parts after the stamp, how many of them async, virtual clo
 
 def load_before(path: str) -> type:
     """The ``Drive`` class of another ``drive.py``, loaded as a module of this asyncdonkey (its relative imports
-    resolve here), so only the drive differs between the two sides."""
-    spec = importlib.util.spec_from_file_location("asyncdonkey._drive_before", path)
+    resolve here), so only the drive differs between the two sides. A ``drive.py`` of ``asyncdonkey.core`` imports
+    the clock as ``..clock``; one from before the core had its package, as ``.clock``."""
+    package = "asyncdonkey.core" if "from ..clock import" in Path(path).read_text() else "asyncdonkey"
+    spec = importlib.util.spec_from_file_location(f"{package}._drive_before", path)
     if spec is None or spec.loader is None:
         raise SystemExit(f"tick_ab: cannot load {path} as a module")
     module = importlib.util.module_from_spec(spec)

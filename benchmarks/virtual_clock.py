@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable
 
 from asyncdonkey import Vehicle
-from asyncdonkey.virtual_loop import VirtualClockLoop
+from asyncdonkey.clock.virtual_loop import VirtualClockLoop
 from machine_info import describe
 
 TICKS = 10_000

@@ -36,8 +36,7 @@ from collections.abc import Callable
 
 from prettytable import PrettyTable
 
-from asyncdonkey import _timerfd
-from asyncdonkey.clock import DeadlineWaiter
+from asyncdonkey.clock import DeadlineWaiter, _timerfd
 from asyncdonkey.loop import run_blocking
 from machine_info import describe
 

@@ -47,7 +47,7 @@ from typing import Any
 
 import pytest
 
-from asyncdonkey.virtual_loop import VirtualClockLoop
+from asyncdonkey.clock.virtual_loop import VirtualClockLoop
 
 KINDS = ("realtime", "browser", "donkeycar", "network", "subprocess")
 TESTS = Path(__file__).resolve().parent
@@ -90,7 +90,7 @@ sys.addaudithook(_audit)  # (an audit hook cannot be removed: it does nothing ou
 
 # ctypes finds the C library by running ldconfig once, the first time asyncdonkey asks for it in each errno mode:
 # a cache filled by whichever test comes first, not a process that test starts. Filled here, before any test.
-from asyncdonkey import _libc  # noqa: E402
+from asyncdonkey.clock import _libc  # noqa: E402
 
 _libc._library(True)
 _libc._library(False)

@@ -6,6 +6,7 @@ Everything asyncdonkey raises derives from :class:`AsyncdonkeyError` (the tree: 
 """
 
 from .clock import Clock, DeadlineWaiter, Schedule, get_clock
+from .clock.virtual_loop import VirtualClockError, VirtualClockLoop
 from .contracts import REFUSED, Contract, Contracts, ContractViolation, Gate
 from .errors import AsyncdonkeyError, ChannelCountError, PartInterrupted, PartTimeoutError
 from .extras import MissingExtra
@@ -14,7 +15,6 @@ from .loop import DriveReport, OutputCountError, PartError, PartSpecError, Vehic
 from .memory import Memory
 from .poller import Poller
 from .safety.process import SafetyProcessError
-from .virtual_loop import VirtualClockError, VirtualClockLoop
 
 __version__ = "0.1.0"
 

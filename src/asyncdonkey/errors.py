@@ -62,7 +62,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from .drive_report import DriveReport
+    from .core.drive_report import DriveReport
 
 __all__ = [
     "AsyncdonkeyError",

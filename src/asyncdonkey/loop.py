@@ -10,7 +10,7 @@ Design notes:
 * **Decided at add().** How a part is called (inline, awaited, offloaded, threaded) is worked out once in
   :meth:`Vehicle.add`; each tick only walks a list of prepared entries.
 * **One clock.** All timing comes from :func:`asyncdonkey.clock.get_clock` for the loop ``run()`` runs on, so
-  on :class:`asyncdonkey.virtual_loop.VirtualClockLoop` the whole drive is virtual and deterministic.
+  on :class:`asyncdonkey.clock.virtual_loop.VirtualClockLoop` the whole drive is virtual and deterministic.
 """
 
 from __future__ import annotations
@@ -21,19 +21,19 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from .buildscope import note_vehicle
 from .clock import get_clock
 from .contracts import Contract, Contracts
-from .drive import Drive, latency_recorder
-from .drive_report import DriveReport
+from .core.buildscope import note_vehicle
+from .core.drive import Drive, latency_recorder
+from .core.drive_report import DriveReport
+from .core.plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
+from .core.profiler import Profiler
+from .core.shutdown import shutdown_drive
+from .core.signals import stop_on_signals
 from .errors import AsyncdonkeyError, OutputCountError, PartError, PartSpecError, PartTimeoutError
 from .memory import Memory
-from .plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
-from .profiler import Profiler
 from .safety.process import GuardedOutput, SafetyProcess, SafetyProcessError, heartbeat_timeout_for
 from .safety.watchdog import ActuatorRuntime, Watchdog, watched
-from .shutdown import shutdown_drive
-from .signals import stop_on_signals
 
 __all__ = [
     "AGE_SUFFIX",
@@ -196,7 +196,7 @@ class Vehicle:
                 it has ``safe_state_sync``, or it is one of Donkeycar's actuator parts).
             pipelined: run the part beside the ticks instead of inside them: whenever it is free it takes the
                 newest inputs, computes (a sync ``run`` in a worker thread) and publishes; the ticks read its
-                outputs as latest values (``asyncdonkey.pipeline``).
+                outputs as latest values (``asyncdonkey.core.pipeline``).
             trigger: for a pipelined part, the input whose new values start it (the camera frame), instead of
                 the tick.
             react: also run this part the moment a pipelined part upstream of it publishes (``DriveMode``, the
@@ -557,7 +557,7 @@ class Vehicle:
         exit_grace_s: float | None = None,
         **kwargs: Any,
     ) -> DriveReport:
-        """:meth:`run` with SIGINT, SIGTERM and SIGHUP bound to the two-step stop (``asyncdonkey.signals``).
+        """:meth:`run` with SIGINT, SIGTERM and SIGHUP bound to the two-step stop (``asyncdonkey.core.signals``).
 
         With a safety process, the signals reach it too, and a car that has not run its signal handler within
         ``exit_grace_s`` (default :attr:`exit_grace_s`, 2 s) of one, or has not ended by the bound its handler set

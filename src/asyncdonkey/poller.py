@@ -41,8 +41,8 @@ import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-from ._timerslack import exact_sleeps
 from .clock import TIME_EPS, Clock, DeadlineWaiter, Schedule, TickGrid, get_clock, grid_start, tick_grid
+from .clock._timerslack import exact_sleeps
 from .latest import Latest, Sample, _new_sample
 from .ratelimit import LogThrottle
 

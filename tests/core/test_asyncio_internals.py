@@ -5,15 +5,15 @@ import threading
 
 import pytest
 
-from asyncdonkey import _asyncio_internals as internals
-from asyncdonkey import virtual_loop
+from asyncdonkey.clock import _asyncio_internals as internals
+from asyncdonkey.clock import virtual_loop
 
 
 def test_every_internal_the_virtual_clock_relies_on_is_present():
     found = internals.problems()
     assert found == [], (
         f"Python {sys.version.split()[0]} changed what VirtualClockLoop relies on (see "
-        f"asyncdonkey/_asyncio_internals.py): {found}"
+        f"asyncdonkey/clock/_asyncio_internals.py): {found}"
     )
 
 

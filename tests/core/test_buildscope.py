@@ -1,4 +1,4 @@
-"""asyncdonkey.buildscope: what a build() made is noted only while it runs, and closed once, actuators first."""
+"""asyncdonkey.core.buildscope: what a build() made is noted only while it runs, and closed once, actuators first."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from asyncdonkey import Vehicle
-from asyncdonkey.buildscope import collecting, register_close
+from asyncdonkey.core.buildscope import collecting, register_close
 
 from ..waiting import wait_until
 
@@ -72,7 +72,7 @@ def test_what_fails_to_close_is_named_in_one_log_line_and_the_rest_still_closes(
         v.add(Recorded("tub", log), name="tub")
         register_close("the I2C bus", broken)
         register_close("the session", lambda: log.append("session"))
-    with caplog.at_level(logging.ERROR, logger="asyncdonkey.buildscope"):
+    with caplog.at_level(logging.ERROR, logger="asyncdonkey.core.buildscope"):
         failed = scope.close()
     assert failed == ["lidar", "the I2C bus"]
     assert sorted(log) == ["lidar", "session", "tub"]

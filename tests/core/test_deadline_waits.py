@@ -21,9 +21,9 @@ from collections.abc import Awaitable, Callable
 import pytest
 import uvloop
 
-from asyncdonkey import Poller, Vehicle, _precise_wait, _timerfd, clock
-from asyncdonkey.clock import Clock, DeadlineWaiter, get_clock
-from asyncdonkey.virtual_loop import VirtualClockLoop
+from asyncdonkey import Poller, Vehicle, clock
+from asyncdonkey.clock import Clock, DeadlineWaiter, _precise_wait, _timerfd, get_clock
+from asyncdonkey.clock.virtual_loop import VirtualClockLoop
 
 from ..waiting import wait_until
 

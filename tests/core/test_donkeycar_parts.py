@@ -8,7 +8,7 @@ from donkeycar.parts.transform import Lambda, PIDController
 from donkeycar.vehicle import Vehicle as DonkeyVehicle
 
 from asyncdonkey import Vehicle
-from asyncdonkey.plan import Background
+from asyncdonkey.core.plan import Background
 
 pytestmark = [pytest.mark.donkeycar]
 

@@ -63,8 +63,8 @@ def test_the_one_class_outside_the_root_is_not_an_exception_at_all() -> None:
     "module, name, stdlib_base",
     [
         ("asyncdonkey.safety.process", "SafetyProcessError", RuntimeError),
-        ("asyncdonkey.virtual_loop", "VirtualClockError", RuntimeError),
-        ("asyncdonkey.virtual_loop", "VirtualClockDeadlock", RuntimeError),
+        ("asyncdonkey.clock.virtual_loop", "VirtualClockError", RuntimeError),
+        ("asyncdonkey.clock.virtual_loop", "VirtualClockDeadlock", RuntimeError),
         ("asyncdonkey.options", "BadValue", ValueError),
         ("asyncdonkey.parts.actuators", "CalibrationLocked", ValueError),
         ("asyncdonkey.parts.zenoh.pairing", "PairExists", ValueError),

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from asyncdonkey._libc import libc_function
+from asyncdonkey.clock._libc import libc_function
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the calls looked up are Linux's")
 

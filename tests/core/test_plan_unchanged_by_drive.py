@@ -12,8 +12,8 @@ import asyncio
 import pytest
 
 from asyncdonkey import Vehicle, get_clock
+from asyncdonkey.core.plan import Entry
 from asyncdonkey.latest import Latest
-from asyncdonkey.plan import Entry
 
 RATE = 20
 TICKS = 30

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from asyncdonkey.profiler import Profiler, Series
+from asyncdonkey.core.profiler import Profiler, Series
 
 
 def test_first_and_last_samples_ignored_like_donkeycar():

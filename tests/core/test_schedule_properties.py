@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from asyncdonkey import Poller, Sample, Vehicle
 from asyncdonkey.clock import Schedule, TickGrid
-from asyncdonkey.drive import START_MARGIN_S
+from asyncdonkey.core.drive import START_MARGIN_S
 from asyncdonkey.poller import POLL_LEAD_S, STOP_CHECK_S
 from asyncdonkey.testing import VirtualClockLoop
 

@@ -14,11 +14,12 @@ def test_every_exported_name_resolves_to_the_object_in_its_module():
         assert obj is not None
         module = getattr(obj, "__module__", None)
         # device models live in asyncdonkey.testing; the virtual clock is runtime code it re-exports
-        assert module is None or module.startswith(("asyncdonkey.testing", "asyncdonkey.virtual_loop")), (name, module)
+        where = ("asyncdonkey.testing", "asyncdonkey.clock.virtual_loop")
+        assert module is None or module.startswith(where), (name, module)
 
 
 def test_the_virtual_loop_is_exported_from_asyncdonkey_testing():
-    import asyncdonkey.virtual_loop as core
+    import asyncdonkey.clock.virtual_loop as core
 
     for name in core.__all__:
         assert getattr(testing, name) is getattr(core, name)

@@ -16,7 +16,7 @@ import uvloop
 
 from asyncdonkey import Poller, Vehicle
 from asyncdonkey.clock import TickGrid, grid_start, tick_grid
-from asyncdonkey.drive import START_MARGIN_S
+from asyncdonkey.core.drive import START_MARGIN_S
 from asyncdonkey.poller import POLL_LEAD_S
 from asyncdonkey.testing import VirtualClockLoop
 

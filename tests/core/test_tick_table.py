@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from asyncdonkey import Vehicle
-from asyncdonkey.profiler import TableSeries, TickTable
+from asyncdonkey.core.profiler import TableSeries, TickTable
 
 NAN = math.nan
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from asyncdonkey.virtual_loop import (
+from asyncdonkey.clock.virtual_loop import (
     VirtualClockBudgetExceeded,
     VirtualClockDeadlock,
     VirtualClockError,

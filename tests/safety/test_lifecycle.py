@@ -10,9 +10,9 @@ import time
 import pytest
 
 from asyncdonkey import PartError, Vehicle
+from asyncdonkey.core.profiler import Series
 from asyncdonkey.errors import PartTimeoutError
 from asyncdonkey.loop import run_blocking
-from asyncdonkey.profiler import Series
 
 from .rig import HALF, NEUTRAL, Const, Rig
 

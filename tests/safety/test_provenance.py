@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from asyncdonkey import Memory, Vehicle
-from asyncdonkey.origin_sources import declared_sources
+from asyncdonkey.core.origin_sources import declared_sources
 from asyncdonkey.parts.control import DriveMode, PilotCondition
 from asyncdonkey.parts.control import DriveMode as OurDriveMode
 

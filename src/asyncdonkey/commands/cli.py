@@ -34,7 +34,7 @@ from types import ModuleType
 from typing import Any, NoReturn
 
 from .. import __version__
-from ..buildscope import BuildScope, collecting
+from ..core.buildscope import BuildScope, collecting
 from ..errors import AsyncdonkeyError
 from ..extras import MissingExtra, extra_for_module
 from ..loop import PartError, Vehicle, run_blocking

@@ -24,7 +24,7 @@ Why a Vehicle and not a plain loop over the records: the pilot sees frames exact
 (through the drive loop, at the recorded instants on the runtime clock), so a pilot part that looks at the
 clock or at ages of channels behaves as it did on the road.
 
-Why the virtual clock: the vehicle runs on :class:`~asyncdonkey.virtual_loop.VirtualClockLoop`, where time jumps to
+Why the virtual clock: the vehicle runs on :class:`~asyncdonkey.VirtualClockLoop`, where time jumps to
 the next record as soon as the current one is done. An hour of driving replays as fast as the CPU runs the
 pilot, and every record reaches the pilot at exactly its recorded offset, so two replays produce the same
 rows to the bit (the CSV is byte-identical); only the inference times, which are real compute, vary.
@@ -475,7 +475,7 @@ def replay(
     subclasses (missing tub, not a tub).
     """
     if speed is None:
-        from ..virtual_loop import VirtualClockLoop
+        from ..clock.virtual_loop import VirtualClockLoop
 
         runner = asyncio.Runner(loop_factory=VirtualClockLoop)
     else:
@@ -504,7 +504,7 @@ async def areplay(
     image_key: str = "cam/image_array",
     contracts: Contracts | Mapping[str, Contract] | None = None,
 ) -> ReplayReport:
-    """:func:`replay` on the running loop (a :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` for exact times)."""
+    """:func:`replay` on the running loop (a :class:`~asyncdonkey.VirtualClockLoop` for exact times)."""
     if speed is not None and not (isinstance(speed, int | float) and speed > 0 and math.isfinite(speed)):
         raise ValueError(f"replay: speed must be a positive number or None, got {speed!r}")
     user_keys = tuple(user_keys)

@@ -13,7 +13,7 @@ Why this shape:
 * **Unplug and replug.** A USB serial device that disappears makes the read fail (EOF or EIO on Linux); the
   transport reports ``connection_lost``, the port counts a disconnect, clears ``connected`` and retries opening
   the same path with exponential backoff on the runtime clock (:func:`asyncdonkey.clock.get_clock`), so on a
-  :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` the retry times are exact. Open a stable path such as
+  :class:`~asyncdonkey.clock.virtual_loop.VirtualClockLoop` the retry times are exact. Open a stable path such as
   ``/dev/serial/by-id/...``: ``/dev/ttyUSB0`` may come back under another number. ``on_connect`` runs after
   every (re)connect so a driver can put the device back in the state it needs (start streaming, start a scan).
 * **Binary mode.** Give a ``receiver`` (any object with ``data_received(bytes)``, optionally

@@ -129,7 +129,7 @@ class DriveMode:
         return _command(pilot_angle), _command(pilot_throttle) * self.ai_throttle_mult
 
     def output_sources(self, mode: object, *_: object) -> tuple[int, int]:
-        """Which input each output came from (``asyncdonkey.origin_sources``): the driver's command is dated by the
+        """Which input each output came from (``asyncdonkey.core.origin_sources``): the driver's command is dated by the
         driver's input, the pilot's by the pilot's, so a stale pilot does not cut a driver in ``user`` mode and a
         fresh gamepad does not hide a silent pilot in ``local`` mode. A ``0.0`` put in for a pilot value that is
         missing is dated by that pilot input (none if it was never written: no age to drive on)."""

@@ -11,9 +11,9 @@ What lives here:
 * :mod:`asyncdonkey.safety.process` — the car's side of it (start, heartbeat, deadlines, figures);
 * :mod:`asyncdonkey.safety.unsafe` — how long an output was unsafe, measured from the deadline that made it so.
 
-The rest of the safety story sits where its work is: :mod:`asyncdonkey.signals` (Ctrl-C and SIGTERM stop the
+The rest of the safety story sits where its work is: :mod:`asyncdonkey.core.signals` (Ctrl-C and SIGTERM stop the
 drive within a bound, a second one makes the actuators safe and exits), the first phase of
-:mod:`asyncdonkey.shutdown` (every actuator's safe state before any other part shuts down),
+:mod:`asyncdonkey.core.shutdown` (every actuator's safe state before any other part shuts down),
 :mod:`asyncdonkey.parts.failsafe` (a stale-command stop for actuators without one of their own) and the
 actuators themselves (:mod:`asyncdonkey.parts.actuators`: ``PWMThrottle``'s stale-command failsafe and the
 ``safe_state_sync`` path every safe-state write takes). ``docs/safety.md`` lists every fault, the response, its

@@ -42,8 +42,8 @@ from typing import TYPE_CHECKING, Any
 from ..ratelimit import LogThrottle
 
 if TYPE_CHECKING:
-    from ..plan import Entry
-    from ..runtypes import LoopActivity
+    from ..core.plan import Entry
+    from ..core.runtypes import LoopActivity
 
 __all__ = ["ActuatorRuntime", "Watchdog"]
 

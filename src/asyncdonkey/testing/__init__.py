@@ -25,7 +25,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from ..virtual_loop import (
+from ..clock.virtual_loop import (
     VirtualClockBudgetExceeded,
     VirtualClockDeadlock,
     VirtualClockError,

@@ -53,8 +53,8 @@ from typing import Any
 
 import pytest
 
+from ..clock.virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
 from ..loop import Vehicle
-from ..virtual_loop import VirtualClockError, VirtualClockLoop, virtual_loop_factory
 
 FACTORY_NAME = "virtual_clock"
 #: virtual seconds a test may run unless its marker says otherwise (``budget_s=None``: no limit): a test

@@ -50,7 +50,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ...profiler import TableSeries
+from ...core.profiler import TableSeries
 from ..tub.encode import make_converter
 
 __all__ = [
@@ -156,7 +156,7 @@ class TimingLayout:
     """Which timing series of a profiler a tick's snapshot counts, and how (built on the loop thread once per
     drive, and again if a series is added).
 
-    The parts run in the tick share the drive's :class:`~asyncdonkey.profiler.TickTable`: their sample counts
+    The parts run in the tick share the drive's :class:`~asyncdonkey.core.profiler.TickTable`: their sample counts
     follow from its committed row count, read once. Every other series (a pipelined part, an actuator's
     latency) has its count read in :meth:`capture`. So noting "how far each series had got at this tick"
     costs the tick one attribute read plus one per such series, and the writer thread later reads the samples
@@ -200,7 +200,7 @@ class TickSnapshot(NamedTuple):
 
     The timing is not copied in the tick, only counted: how many ticks had ended and how many samples each
     timing series had (:meth:`TimingLayout.capture`). The writer thread reads those samples from the
-    profiler's rings itself (:meth:`~asyncdonkey.profiler.Series.at`), by number, so that each lands in the
+    profiler's rings itself (:meth:`~asyncdonkey.core.profiler.Series.at`), by number, so that each lands in the
     tick that took it, exactly once, however far behind the writer is.
     """
 

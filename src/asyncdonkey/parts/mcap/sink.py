@@ -35,7 +35,7 @@ import os
 from collections.abc import Callable
 from typing import IO, Any
 
-from ..._libc import libc_function
+from ...clock._libc import libc_function
 from ...extras import require
 from ..tub.fileio import with_filename
 from .encode import ChannelSpec, TickEncoder, TickSnapshot, TimeMap

@@ -16,7 +16,7 @@ from __future__ import annotations
 import ctypes
 import os
 
-from ..._libc import libc_function
+from ...clock._libc import libc_function
 
 __all__ = ["TubFileIO", "with_filename"]
 

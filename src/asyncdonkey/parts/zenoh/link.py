@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ...buildscope import register_close
+from ...core.buildscope import register_close
 from ...errors import AsyncdonkeyError
 from ...extras import require
 from .certs import log_certificate_problems

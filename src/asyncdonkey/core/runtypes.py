@@ -15,12 +15,12 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:  # types only: each of these modules imports this one
-    from .clock import Clock
-    from .memory import Memory
+    from ..clock import Clock
+    from ..memory import Memory
+    from ..safety.watchdog import Watchdog
     from .partrun import PartRun
     from .pipeline import Reaction, ReentryGuard
     from .plan import Entry
-    from .safety.watchdog import Watchdog
 
 __all__ = ["LoopActivity", "PipelineHost", "RunningCall", "ShutdownScope", "Stoppable"]
 
@@ -91,7 +91,7 @@ class ShutdownScope(Protocol):
 
 class PipelineHost(Protocol):
     """What the pipelines and reactions use of the drive they run beside (``runs``: each part's
-    :class:`~asyncdonkey.partrun.PartRun` for this drive, in add() order)."""
+    :class:`~asyncdonkey.core.partrun.PartRun` for this drive, in add() order)."""
 
     @property
     def runs(self) -> Sequence[PartRun]: ...

@@ -56,7 +56,7 @@ import threading
 from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
-from .errors import PartTimeoutError
+from ..errors import PartTimeoutError
 from .plan import with_timeout
 
 if TYPE_CHECKING:
@@ -560,7 +560,7 @@ class GuardedTick:
 
 
 def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline]]:
-    """The tick's list (the drive's :class:`~asyncdonkey.partrun.PartRun` of each part, pipelined parts replaced by
+    """The tick's list (the drive's :class:`~asyncdonkey.core.partrun.PartRun` of each part, pipelined parts replaced by
     their kickers) and the drive's pipelines.
 
     Also wires the triggers: parts whose outputs feed a trigger get ``kicks`` (checked after their store), and

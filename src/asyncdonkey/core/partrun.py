@@ -1,6 +1,6 @@
 """One part in one drive: what a run keeps about a part, apart from the plan ``Vehicle.add()`` made.
 
-A :class:`~asyncdonkey.plan.Entry` is the plan decided at ``add()`` and belongs to the vehicle, which can be
+A :class:`~asyncdonkey.core.plan.Entry` is the plan decided at ``add()`` and belongs to the vehicle, which can be
 driven again and again; nothing writes it while a car drives. Everything a drive learns or decides about a part
 lives in its :class:`PartRun`, made fresh when the drive starts and dropped when it ends: the errors counted, the
 timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs trigger, the re-entry
@@ -75,7 +75,7 @@ class PartRun:
         self.series: Any = None
         #: an actuator the loop measures itself: ``latency(run end)`` records its sensing-to-actuation latency
         self.latency: Callable[[float], None] | None = None
-        #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.pipeline``)
+        #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.core.pipeline``)
         self.kicks: tuple[Any, ...] = ()
-        #: its :class:`~asyncdonkey.pipeline.ReentryGuard` when more than one path can be inside its call at once
+        #: its :class:`~asyncdonkey.core.pipeline.ReentryGuard` when more than one path can be inside its call at once
         self.reentry_guard: Any = None

@@ -1,6 +1,6 @@
 """Every CPython implementation detail the virtual clock relies on, in one place, checked at import.
 
-:class:`~asyncdonkey.virtual_loop.VirtualClockLoop` needs to see things asyncio and the threading modules keep
+:class:`~asyncdonkey.clock.virtual_loop.VirtualClockLoop` needs to see things asyncio and the threading modules keep
 private: the loop's timer heap (``_scheduled``), its ready queue (``_ready``), what one loop iteration does
 (``_run_once``), the fields of a timer handle, how ``asyncio.wrap_future`` creates its future, how a
 ``ThreadPoolExecutor`` worker runs a job, which frames a thread is in while it blocks on a lock, and the

@@ -25,7 +25,7 @@ class TimeSource(NamedTuple):
 
 
 def time_source(loop: asyncio.AbstractEventLoop) -> TimeSource:
-    """The runtime's time on ``loop`` (a :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` says it is virtual
+    """The runtime's time on ``loop`` (a :class:`~asyncdonkey.clock.virtual_loop.VirtualClockLoop` says it is virtual
     through ``loop.is_virtual_clock``)."""
     is_virtual = bool(getattr(loop, "is_virtual_clock", False))
     return TimeSource(is_virtual, loop.time if is_virtual else time.monotonic)

@@ -1,7 +1,7 @@
 """The one clock the runtime reads, the one deadline schedule every periodic task follows, and how to wait.
 
 Every duration, deadline and timestamp in asyncdonkey comes from a :class:`Clock` taken from the event loop
-the code runs on. On a :class:`~asyncdonkey.virtual_loop.VirtualClockLoop` the clock *is* the loop's virtual time,
+the code runs on. On a :class:`~asyncdonkey.clock.virtual_loop.VirtualClockLoop` the clock *is* the loop's virtual time,
 so a test controls everything the runtime measures. On a real loop the clock reads ``time.monotonic()``
 (``CLOCK_MONOTONIC``, nanosecond resolution on Linux) rather than ``loop.time()``, because uvloop's
 ``loop.time()`` only has millisecond resolution.

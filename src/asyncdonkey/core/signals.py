@@ -40,7 +40,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
-from .errors import PartInterrupted
+from ..errors import PartInterrupted
 
 if TYPE_CHECKING:
     from .runtypes import LoopActivity, RunningCall, Stoppable

@@ -1,7 +1,7 @@
 """How one part is called each tick, decided once when it is added (``Vehicle.add``).
 
 Everything a tick needs about a part is worked out here, so the tick itself only walks a list of prepared
-:class:`Entry` objects (as each drive's :class:`~asyncdonkey.partrun.PartRun` holds them): no per-tick
+:class:`Entry` objects (as each drive's :class:`~asyncdonkey.core.partrun.PartRun` holds them): no per-tick
 ``hasattr``/``isinstance``. That includes where the values it returns get their *origin* (the time of the
 sensing behind them), by the invariant of ``docs/provenance.md``: no value is ever dated younger than the
 sensing that could have produced it.
@@ -36,13 +36,13 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Literal, TypeGuard
 
-from .contracts import ContractViolation
-from .errors import OutputCountError, PartSpecError, PartTimeoutError
-from .memory import Memory
+from ..contracts import ContractViolation
+from ..errors import OutputCountError, PartSpecError, PartTimeoutError
+from ..memory import Memory
 from .origin_sources import OutputSources, declared_sources
 
 if TYPE_CHECKING:
-    from .contracts import Contract, Contracts
+    from ..contracts import Contract, Contracts
 
 __all__ = ["AGE_SUFFIX", "Background", "Entry", "OnError", "build_entry", "checked_store"]
 
@@ -89,7 +89,7 @@ class Entry:
 
     Fixed at ``add()`` and never written while the car drives: a drive keeps what it learns about a part (errors,
     timings, latency recorder, pipeline kicks, guard, checked stores) in a
-    :class:`~asyncdonkey.partrun.PartRun` of its own, so the next drive starts from the same plan."""
+    :class:`~asyncdonkey.core.partrun.PartRun` of its own, so the next drive starts from the same plan."""
 
     __slots__ = (
         "actuator",

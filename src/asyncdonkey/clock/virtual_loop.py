@@ -15,7 +15,7 @@ How it works, and why this way:
   directly instead of computing a timeout and calling ``select``: with nothing outside to watch, it reads no
   real clock and makes a system call only once in 64 iterations, so a timer and a jump cost less than one
   pass of plain asyncio's loop (``benchmarks/virtual_clock.py`` shows both). Its timers and callbacks are
-  asyncio's handles, built field by field; :mod:`asyncdonkey._asyncio_internals` checks every such shortcut
+  asyncio's handles, built field by field; :mod:`asyncdonkey.clock._asyncio_internals` checks every such shortcut
   against asyncio's own code paths.
 * **Real work holds time still.** Virtual time must not run ahead of work that is really being done for the
   program, or a 1 s sleeper beside a 50 ms thread wakes first. So time stands still, and the loop waits in
@@ -30,7 +30,7 @@ How it works, and why this way:
   in ``Thread.join()`` can only be released by someone else, usually a task on this loop: it does not hold
   time, or the task that would release it could never run. A ``ThreadPoolExecutor`` worker waiting for its
   next job does not hold time either. (Telling these apart reads the threads' Python frames: see
-  :mod:`asyncdonkey._asyncio_internals`.)
+  :mod:`asyncdonkey.clock._asyncio_internals`.)
 * **Autojump threshold.** Daemon threads (a Donkeycar part's ``update()`` loop, a camera reader) and file
   descriptors registered with the loop (sockets, pipes, ptys) may answer at any moment, or never: they do not
   hold time, but while any is present the loop waits ``autojump_threshold`` of real time for them before each
@@ -73,8 +73,8 @@ from asyncio import futures
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
+from ..errors import AsyncdonkeyError
 from . import _asyncio_internals as _internals
-from .errors import AsyncdonkeyError
 
 _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")

@@ -44,7 +44,7 @@ class DriveReport:
         pipelined: per pipelined part, ``runs``, ``published``, its own ``rate_hz`` and ``superseded`` (start
             requests replaced by a newer one while it was busy: frames it never saw).
         reentries_avoided: per part that more than one path can be inside at once (see
-            :mod:`asyncdonkey.pipeline`: a ``react=True`` part that awaits, an executor part with a timeout), the
+            :mod:`asyncdonkey.core.pipeline`: a ``react=True`` part that awaits, an executor part with a timeout), the
             calls that found it still running: ``waited`` (waited for that call to end, then ran it with the inputs
             as they were then) and ``coalesced`` (another call was already waiting: served by that one's run, on
             inputs at least as new; newest wins). A part is never entered twice at once.

@@ -3,7 +3,7 @@
 A :class:`~asyncdonkey.loop.Vehicle` is the car's *definition* (its parts and channels) and can be driven
 again and again; everything that belongs to one run lives here and is made fresh each time: the clock, the
 profiler, the stop latch, the background tasks and ``update()`` threads, the watchdog, the counters the report is
-made of, and for each part a :class:`~asyncdonkey.partrun.PartRun` (its error count, timing series, latency
+made of, and for each part a :class:`~asyncdonkey.core.partrun.PartRun` (its error count, timing series, latency
 recorder, pipeline kicks, re-entry guard, checked stores). The vehicle's entries (the plan ``add()`` made) are only
 read. So a second run reports only itself and starts from the same plan, a ``stop()`` meant for one run cannot leak
 into another, and every ending (done, stopped, failed, cancelled) fills the same report.
@@ -11,7 +11,7 @@ into another, and every ending (done, stopped, failed, cancelled) fills the same
 The tick (:meth:`Drive.tick_loop`) is flat: for each part's run, check its run condition, read its inputs, call
 it, store its outputs with their origins, record its time.
 
-Timing goes into one row per tick of the drive's :class:`~asyncdonkey.profiler.TickTable`: the deadline and the
+Timing goes into one row per tick of the drive's :class:`~asyncdonkey.core.profiler.TickTable`: the deadline and the
 tick's start, each part's end time (one float store per part, ``nan`` for a part skipped by its run condition),
 the tick's end. A part starts when the one before it ended, so one clock read per part is enough; lateness,
 durations and overruns are worked out from the rows when a report asks.
@@ -28,21 +28,21 @@ import threading
 from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
-from .clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
-from .clock import TICK_GRID as _TICK_GRID
-from .errors import PartError, PartInterrupted
-from .memory import Memory
+from ..clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
+from ..clock import TICK_GRID as _TICK_GRID
+from ..errors import PartError, PartInterrupted
+from ..memory import Memory
+from ..ratelimit import LogThrottle
 from .partrun import PartRun
 from .pipeline import Reaction, ReentryGuard, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
-from .ratelimit import LogThrottle
 
 if TYPE_CHECKING:
-    from .contracts import Contracts
+    from ..contracts import Contracts
+    from ..safety.process import SafetyProcess
+    from ..safety.watchdog import Watchdog
     from .drive_report import DriveReport
-    from .safety.process import SafetyProcess
-    from .safety.watchdog import Watchdog
 
 __all__ = ["Drive"]
 
@@ -119,13 +119,13 @@ class Drive:
         self.longest_block: tuple[float, str] | None = None
         #: parts whose shutdown() or update() thread did not finish in time (left running as daemon threads)
         self.abandoned: list[str] = []
-        # pipelined parts (asyncdonkey.pipeline): the tick calls their kickers in their place
+        # pipelined parts (asyncdonkey.core.pipeline): the tick calls their kickers in their place
         self.push_sources: list[tuple[PartRun, Any, Reaction | None]] = []
         self._unsubscribe: list[Any] = []
-        #: the parts more than one path can be inside at once, each kept to one call at a time (asyncdonkey.pipeline)
+        #: the parts more than one path can be inside at once, one call at a time (asyncdonkey.core.pipeline)
         self.reentry_guards: list[ReentryGuard] = []
         #: what each tick calls, in order: the parts' runs, a pipelined part's kicker or a guarded part's GuardedTick
-        #: in its place (``asyncdonkey.pipeline``)
+        #: in its place (``asyncdonkey.core.pipeline``)
         self.tick_runs, self.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
         self.table = table = TickTable(len(self.tick_runs), 1.0 / report.rate_hz, profiler.window)
@@ -149,7 +149,7 @@ class Drive:
     # ------------------------------------------------------------------------------------ checked mode
     def check_outputs(self, contracts: Contracts) -> int:
         """Checked mode for this drive: every part whose outputs have contracts stores through a check
-        (:func:`~asyncdonkey.plan.checked_store`); returns how many parts are checked.
+        (:func:`~asyncdonkey.core.plan.checked_store`); returns how many parts are checked.
 
         Decided once, here, so the tick stays as it is: a checked part's run simply has another ``store``. Only
         the runs change: the entries keep their own stores, and the next drive decides again.
@@ -328,7 +328,7 @@ class Drive:
     ) -> Generator[Any, Any, None]:
         """The drive's ticks: yields a deadline (float) to be resumed at, or an awaitable whose result (or exception)
         is to be sent (thrown) back in; returns when the drive is to end, the reason noted. Each tick fills a row
-        of the :class:`~asyncdonkey.profiler.TickTable` (module docstring). Only what every tick does is here, on
+        of the :class:`~asyncdonkey.core.profiler.TickTable` (module docstring). Only what every tick does is here, on
         fast locals bound once; what is decided once, or rare (a limit, a part cut short, verbose logs), is a method.
         """
         now, entries, table = self.clock.now, self.tick_runs, self.table

@@ -10,10 +10,10 @@ Part of the clock (:mod:`asyncdonkey.clock` re-exports it). Three ways to wait, 
 - **loop-timer** (elsewhere, or when a timerfd cannot be created): the loop's own timers, re-armed until the
   clock has passed the deadline, so never early either. uvloop's timers count whole milliseconds of a cached
   clock, so there the wait is armed one millisecond long.
-- **virtual** (a :class:`~asyncdonkey.virtual_loop.VirtualClockLoop`): an exact loop timer at the deadline, so
+- **virtual** (a :class:`~asyncdonkey.clock.virtual_loop.VirtualClockLoop`): an exact loop timer at the deadline, so
   runs are deterministic and free of float drift.
 
-Precise mode's arithmetic (where to arm, and learning it) is the base class's, :mod:`asyncdonkey._precise_wait`.
+Precise mode's arithmetic (where to arm, and learning it) is the base class's, :mod:`asyncdonkey.clock._precise_wait`.
 docs/timing.md has what each way costs and how late it wakes, as measured.
 """
 

@@ -18,22 +18,19 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from .clock import get_clock
 from .contracts import Contract, Contracts
 from .core.buildscope import note_vehicle
-from .core.drive import Drive, latency_recorder
-from .core.drive_report import DriveReport
+from .core.drive import Drive
+from .core.drive_report import DriveReport, format_report
 from .core.plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
 from .core.profiler import Profiler
-from .core.shutdown import shutdown_drive
 from .core.signals import stop_on_signals
 from .errors import AsyncdonkeyError, OutputCountError, PartError, PartSpecError, PartTimeoutError
 from .memory import Memory
-from .safety.process import GuardedOutput, SafetyProcess, SafetyProcessError, heartbeat_timeout_for
-from .safety.watchdog import ActuatorRuntime, Watchdog, watched
 
 __all__ = [
     "AGE_SUFFIX",
@@ -47,15 +44,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-
-#: How the summary says why a drive ended, for the reasons the loop sets itself (``DriveReport.stop_reason`` keeps
-#: the short names, which code compares against): "stop()" alone read as if someone had called it.
-_STOP_WORDS = {
-    "max_loop_count": "loop limit reached (max_loop_count)",
-    "duration": "time limit reached (duration)",
-    "stop()": "stop() called",
-}
 
 
 class Vehicle:
@@ -107,7 +95,6 @@ class Vehicle:
         self._profiler_window = profiler_window
         self.profiler = self._new_profiler()
         self.parts: list[Entry] = []
-        self.on = False
         self.last_report: DriveReport | None = None
         self._drive: Drive | None = None
         self._pending_stop: str | None = None
@@ -115,6 +102,13 @@ class Vehicle:
         #: the exit grace the safety process enforces, while run_with_signals has the signals (else None)
         self._signal_exit_grace: float | None = None
         note_vehicle(self)  # a build() that raises after making it: `asyncdonkey run` shuts its parts down
+
+    @property
+    def on(self) -> bool:
+        """Whether the drive in progress is ticking (Donkeycar's flag): false before its first tick starts, once its
+        ticks have ended (during shutdown too) and between drives."""
+        drive = self._drive
+        return drive is not None and drive.on
 
     @property
     def drive(self) -> Drive | None:
@@ -298,45 +292,16 @@ class Vehicle:
         if self._drive is not None:
             raise RuntimeError("Vehicle.run: this vehicle is already running")
         drive = self._new_drive(float(rate_hz), float(stop_grace_s), bool(precise), checked)
-        report = drive.report
-        self.on = drive.on = True
-        outcome: BaseException | None = None
         try:
-            drive.safety_process = await self._start_safety_process(drive, float(rate_hz))
-            self._attach_actuators(drive)
-            drive.start_background(float(rate_hz))
-            await drive.tick_loop(float(rate_hz), max_loop_count, duration, verbose, report_every)
-        except BaseException as exc:
-            outcome = exc
-            report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
-        if drive.safety_process is not None:
-            drive.safety_process.ending()
-        self.on = drive.on = False
-        drive.waiter.close()
-        drive.unsubscribe_push_sources()
-        try:
-            cancelled = await shutdown_drive(drive)
+            return await drive.run(max_loop_count, duration, verbose, report_every)
         finally:
-            self._detach_actuators(drive)
-            drive.fill_report()
-            self.last_report = report
+            self.last_report = drive.report
             self._drive = None
             self._pending_stop = None
-            logger.info("%s", self.format_report(report))
-        if outcome is not None:
-            if isinstance(outcome, PartError):
-                outcome.report = report
-            raise outcome
-        if cancelled:
-            raise asyncio.CancelledError()
-        if drive.background_error is not None:
-            drive.background_error.report = report
-            raise drive.background_error
-        return report
 
     def _new_drive(self, rate_hz: float, stop_grace_s: float, precise: bool, checked: bool | None) -> Drive:
         """A fresh drive on the running loop: its clock, profiler, report and stop latch (a stop asked for before
-        the run is honoured), and checked mode as asked."""
+        the run is honoured), checked mode as asked, and the safety process as :attr:`safety_process` asks."""
         loop = asyncio.get_running_loop()
         clock = get_clock(loop)
         self.mem.use_clock(clock.now)
@@ -352,6 +317,8 @@ class Vehicle:
             stop_grace_s=stop_grace_s,
             block_report_s=self.block_report_s,
             precise=precise,
+            want_safety_process=self.safety_process,
+            exit_grace_s=self._signal_exit_grace,
         )
         self._drive = drive
         if self._checked_for(checked):
@@ -369,151 +336,10 @@ class Vehicle:
             return checked
         return self.checked if self.checked is not None else bool(self.checked_by_default)
 
-    async def _start_safety_process(self, drive: Drive, rate_hz: float) -> SafetyProcess | None:
-        """Start the safety process for the actuators it can reach, as :attr:`safety_process` asks.
-
-        Never on the virtual clock: there, time stands still while the loop thread is busy, so nothing can go
-        stale behind its back, and a real process beside virtual time would see every deadline as long past."""
-        want = self.safety_process
-        if want is False or drive.clock.is_virtual:
-            return None
-        from .parts.actuators import PWMThrottle  # here: the actuators import the core
-
-        outputs: list[GuardedOutput] = []
-        windows: list[float | None] = []
-        for e in drive.entries:
-            routed = getattr(e.part, "safety_route", None) if e.actuator else None
-            route = routed() if callable(routed) else None
-            if route is not None:
-                outputs.append(GuardedOutput(e.name, route, e.part, stops_motion=isinstance(e.part, PWMThrottle)))
-                windows.append(getattr(e.part, "failsafe_age_s", None))
-        if not outputs:
-            if want:
-                raise SafetyProcessError(
-                    "Vehicle(safety_process=True): no actuator has an output another process can reach (a PCA9685 "
-                    "channel given by pin spec or PWMChannel)"
-                )
-            return None
-        guard = SafetyProcess(outputs, heartbeat_timeout_for(windows, rate_hz), self._signal_exit_grace)
-        try:
-            await asyncio.get_running_loop().run_in_executor(None, guard.start)
-        except (SafetyProcessError, OSError) as exc:
-            guard.kill()
-            if want:
-                raise SafetyProcessError(str(exc)) from exc
-            logger.error("%s; driving with the in-process watchdog only", exc)
-            return None
-        if self._signal_exit_grace is not None:
-            guard.watch_signals()  # our signal handlers are installed: the guard hears the signals too
-        guard.stop_drive = drive.request_stop
-        return guard
-
-    def _attach_actuators(self, drive: Drive) -> None:
-        """Give each actuator its latency recorder (on the part, or on its run for this drive), and start the
-        watchdog on a real loop."""
-        actuators = [r for r in drive.runs if r.entry.actuator]
-        if not actuators:
-            return
-        guarded = watched(r.entry for r in actuators)
-        if guarded and not drive.clock.is_virtual:
-            drive.watchdog = Watchdog(drive, guarded, drive.clock.now)
-        safety = drive.safety_process
-        slot = {o.name: i for i, o in enumerate(safety.outputs)} if safety is not None else {}
-        for r in actuators:
-            e = r.entry
-            record = latency_recorder(drive.profiler, e.name)
-            attach = getattr(e.part, "attach", None)
-            if callable(attach):
-                i = slot.get(e.name)
-                if safety is not None and i is not None:
-                    attach(ActuatorRuntime(record, drive.watchdog, safety.deadline_setter(i), _last_event(safety, i)))
-                else:
-                    attach(ActuatorRuntime(record, drive.watchdog))
-            else:
-                r.latency = _run_end_latency(record, self.mem.origins, e)
-        if drive.watchdog is not None:
-            if safety is not None:
-                drive.watchdog.monitor = safety.check  # the car watches its guard from the watchdog thread
-            drive.watchdog.start()
-
-    def _detach_actuators(self, drive: Drive) -> None:
-        if drive.watchdog is not None:
-            drive.watchdog.stop()
-        if drive.safety_process is not None:
-            drive.safety_process.stop()
-        for e in drive.entries:
-            if not e.actuator:
-                continue
-            attach = getattr(e.part, "attach", None)
-            if callable(attach):
-                attach(None)
-
     # ---------------------------------------------------------------------------------------- report
     def format_report(self, report: DriveReport) -> str:
         """The profiler table plus the loop summary, as printed at the end of a drive."""
-        rows = [
-            ("loops", f"{report.loops} in {report.elapsed_s:.3f} s"),
-            ("achieved", f"{report.achieved_hz:.3f} Hz of {report.rate_hz:g} Hz"),
-            ("overruns", str(report.overruns)),
-            ("skipped deadlines", str(report.skipped_deadlines)),
-        ]
-        if report.spin_window_ms is not None:
-            sleeps = "two sleeps" if report.precise_sleeps == 2 else "one sleep"
-            rows.append(("precise spin window", f"{report.spin_window_ms:.3f} ms (learned; after {sleeps})"))
-        for name, lat in report.latency_ms.items():
-            rows.append(
-                (
-                    f"sensing-to-actuation ({name})",
-                    f"p50 {lat['50%']:.1f} ms, p99 {lat['99%']:.1f} ms, max {lat['max']:.1f} ms",
-                )
-            )
-        for name, p in report.pipelined.items():
-            rows.append(
-                (
-                    f"pipelined {name}",
-                    f"{p['runs']} runs at {p['rate_hz']:.2f} Hz (loop {report.achieved_hz:.2f} Hz), "
-                    f"{p['superseded']} starts superseded while it was busy",
-                )
-            )
-        for name, g in report.reentries_avoided.items():
-            if g["waited"] or g["coalesced"]:
-                rows.append(
-                    (
-                        f"one call at a time ({name})",
-                        f"{g['waited']} calls waited for its running call, {g['coalesced']} served by a newer one",
-                    )
-                )
-        for name, p in report.pushed.items():
-            if p["superseded"]:
-                rows.append((f"pushed {name}", f"{p['superseded']} pushes superseded while their reactions ran"))
-        if report.part_errors:
-            rows.append(("part errors", ", ".join(f"{k}: {v}" for k, v in report.part_errors.items())))
-        if report.watchdog_events:
-            failed = report.watchdog_failed_attempts
-            retried = f", {failed} failed writes retried" if failed else ""
-            rows.append(("watchdog", f"{report.watchdog_events} safe-state events{retried}"))
-        for name, u in report.unsafe_ms.items():
-            rows.append(
-                (f"unsafe ({name})", f"{u['events']} times, {u['total']:.0f} ms in all, longest {u['max']:.0f} ms")
-            )
-        sp = report.safety_process
-        if sp is not None:
-            lost = sp.get("lost", 0)
-            lost_row = f"; lost {lost} times ({sp['lost_why'][-1]}), restarted {sp.get('restarts', 0)}" if lost else ""
-            rows.append(
-                (
-                    "safety process",
-                    f"guarded {', '.join(sp['outputs'])}; {sp['events']} safe-state events, "
-                    f"{sp['failed_attempts']} failed writes retried{lost_row}",
-                )
-            )
-        if report.shutdown_abandoned:
-            rows.append(("shutdown abandoned", ", ".join(report.shutdown_abandoned)))
-        if report.longest_block_ms is not None:
-            ms, part = report.longest_block_ms
-            rows.append(("longest loop block", f"{ms:,.0f} ms by part {part!r}"))
-        rows.append(("stopped by", _STOP_WORDS.get(report.stop_reason, report.stop_reason)))
-        return self.profiler.table(rows)
+        return format_report(report, self.profiler)
 
     def shutdown_deadline_s(self) -> float:
         """The longest shutdown can take: the safe-state phase, then the slowest of the other parts."""
@@ -585,28 +411,6 @@ def _check_run_args(rate_hz: Any, max_loop_count: Any, duration: Any, stop_grace
         raise ValueError(f"Vehicle.run: stop_grace_s must be a positive number, got {stop_grace_s!r}")
     if checked is not None and type(checked) is not bool:
         raise ValueError(f"Vehicle.run: checked must be True, False or None, got {checked!r}")
-
-
-def _last_event(guard: SafetyProcess, i: int) -> Callable[[], tuple[float, float]]:
-    return lambda: guard.last_event(i)
-
-
-def _run_end_latency(
-    record: Callable[[float, float], None], origins: dict[str, float], e: Entry
-) -> Callable[[float], None] | None:
-    """For an actuator that writes inside its ``run()``: ``latency(t_end)`` records the end of its run minus the
-    origin of its first input (its command). ``None`` for an actuator without inputs (nothing to measure)."""
-    k = next((i for i in e.inputs if i is not None), None)
-    if k is None:
-        return None
-    oget = origins.get
-
-    def latency(t_end: float) -> None:
-        o = oget(k)
-        if o is not None:
-            record(t_end, o)
-
-    return latency
 
 
 def run_blocking(coro: Any, *, use_uvloop: bool = True) -> Any:

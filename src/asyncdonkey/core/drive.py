@@ -8,6 +8,10 @@ recorder, pipeline kicks, re-entry guard, checked stores). The vehicle's entries
 read. So a second run reports only itself and starts from the same plan, a ``stop()`` meant for one run cannot leak
 into another, and every ending (done, stopped, failed, cancelled) fills the same report.
 
+The drive owns its lifecycle (:meth:`Drive.run`): the safety attachment (the safety process, the watchdog and
+each actuator wired to them, ``asyncdonkey.safety.attach``), the parts' background work, the ticks, the stop, the
+two-phase shutdown (``asyncdonkey.core.shutdown``) and the report; ``Vehicle.run()`` makes a drive and awaits it.
+
 The tick (:meth:`Drive.tick_loop`) is flat: for each part's run, check its run condition, read its inputs, call
 it, store its outputs with their origins, record its time.
 
@@ -33,10 +37,13 @@ from ..clock import TICK_GRID as _TICK_GRID
 from ..errors import PartError, PartInterrupted
 from ..memory import Memory
 from ..ratelimit import LogThrottle
+from ..safety.attach import attach_actuators, detach_actuators, start_safety_process
+from .drive_report import format_report
 from .partrun import PartRun
 from .pipeline import Reaction, ReentryGuard, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
+from .shutdown import shutdown_drive
 
 if TYPE_CHECKING:
     from ..contracts import Contracts
@@ -58,7 +65,8 @@ _TIME_EPS = 1e-9
 
 
 class Drive:
-    """The state of one run. Made by ``Vehicle.run()``; not meant to be built by users."""
+    """One run, from its start to its report: made and awaited (:meth:`run`) by ``Vehicle.run()``; not meant to be
+    built by users."""
 
     def __init__(
         self,
@@ -72,6 +80,8 @@ class Drive:
         stop_grace_s: float,
         block_report_s: float,
         precise: bool = False,
+        want_safety_process: bool | None = None,
+        exit_grace_s: float | None = None,
     ) -> None:
         #: the vehicle's parts as added (the plan: never written by the drive)
         self.entries = entries
@@ -84,11 +94,15 @@ class Drive:
         self.report = report
         self.stop_grace_s = stop_grace_s
         self.block_report_s = block_report_s
+        #: ``Vehicle.safety_process``: None starts the safety process when it can, True requires it, False never
+        self.want_safety_process = want_safety_process
+        #: the exit grace the safety process enforces while the car's signal handlers are installed (else None)
+        self.exit_grace_s = exit_grace_s
         # stop latch
         self.stop_requested = False
         self.stop_reason = ""
         self._wake: asyncio.Future[None] | None = None
-        #: waits for every tick's deadline (one OS timer per drive); closed by Vehicle.run() when the ticks end
+        #: waits for every tick's deadline (one OS timer per drive); closed by :meth:`run` when the ticks end
         self.waiter = DeadlineWaiter(loop, precise=precise)
         self._grace_handle: asyncio.TimerHandle | None = None
         # background work owned by this run
@@ -137,6 +151,57 @@ class Drive:
                 r.series = profiler.series_for(r.name)
             else:
                 r.series = profiler.parts[r.name] = TableSeries(r.name, table, column[id(r)], skip_first=True)
+
+    # ---------------------------------------------------------------------------------------- lifecycle
+    async def run(
+        self, max_loop_count: int | None, duration: float | None, verbose: bool, report_every: int
+    ) -> DriveReport:
+        """The whole drive: start (the safety attachment, then the parts' background work), tick until
+        ``max_loop_count`` ticks, ``duration`` seconds, a stop request or cancellation, then stop, shut down
+        (actuators to their safe state first) and fill the report, whatever ended it; the report is logged.
+
+        Returns the report; raises what ended the drive, with the report attached to a :class:`PartError`
+        (``.report``), or ``CancelledError`` when shutdown itself was cancelled."""
+        report = self.report
+        rate_hz = report.rate_hz
+        self.on = True
+        outcome: BaseException | None = None
+        try:
+            self.safety_process = await start_safety_process(self, rate_hz, self.want_safety_process, self.exit_grace_s)
+            attach_actuators(
+                self, {r.name: latency_recorder(self.profiler, r.name) for r in self.runs if r.entry.actuator}
+            )
+            self.start_background(rate_hz)
+            await self.tick_loop(rate_hz, max_loop_count, duration, verbose, report_every)
+        except BaseException as exc:
+            outcome = exc
+            report.stop_reason = "cancelled" if isinstance(exc, asyncio.CancelledError) else "error"
+        cancelled = await self._end()
+        if outcome is not None:
+            if isinstance(outcome, PartError):
+                outcome.report = report
+            raise outcome
+        if cancelled:
+            raise asyncio.CancelledError()
+        if self.background_error is not None:
+            self.background_error.report = report
+            raise self.background_error
+        return report
+
+    async def _end(self) -> bool:
+        """Stop ticking, shut down, take the safety attachment off and fill the report; whether shutdown was
+        cancelled."""
+        if self.safety_process is not None:
+            self.safety_process.ending()
+        self.on = False
+        self.waiter.close()
+        self.unsubscribe_push_sources()
+        try:
+            return await shutdown_drive(self)
+        finally:
+            detach_actuators(self)
+            self.fill_report()
+            logger.info("%s", format_report(self.report, self.profiler))
 
     # ----------------------------------------------------------------------------------------- executor
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:

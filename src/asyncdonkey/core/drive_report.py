@@ -7,9 +7,20 @@ that carries it (``PartError.report``), so none of them has to import the loop t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["DriveReport"]
+if TYPE_CHECKING:
+    from .profiler import Profiler
+
+__all__ = ["DriveReport", "format_report"]
+
+#: How the summary says why a drive ended, for the reasons the loop sets itself (``DriveReport.stop_reason`` keeps
+#: the short names, which code compares against): "stop()" alone read as if someone had called it.
+_STOP_WORDS = {
+    "max_loop_count": "loop limit reached (max_loop_count)",
+    "duration": "time limit reached (duration)",
+    "stop()": "stop() called",
+}
 
 
 @dataclass
@@ -88,3 +99,68 @@ class DriveReport:
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+
+def format_report(report: DriveReport, profiler: Profiler) -> str:
+    """The profiler table plus the loop summary, as printed at the end of a drive (``profiler``: the drive's)."""
+    rows = [
+        ("loops", f"{report.loops} in {report.elapsed_s:.3f} s"),
+        ("achieved", f"{report.achieved_hz:.3f} Hz of {report.rate_hz:g} Hz"),
+        ("overruns", str(report.overruns)),
+        ("skipped deadlines", str(report.skipped_deadlines)),
+    ]
+    if report.spin_window_ms is not None:
+        sleeps = "two sleeps" if report.precise_sleeps == 2 else "one sleep"
+        rows.append(("precise spin window", f"{report.spin_window_ms:.3f} ms (learned; after {sleeps})"))
+    for name, lat in report.latency_ms.items():
+        rows.append(
+            (
+                f"sensing-to-actuation ({name})",
+                f"p50 {lat['50%']:.1f} ms, p99 {lat['99%']:.1f} ms, max {lat['max']:.1f} ms",
+            )
+        )
+    for name, p in report.pipelined.items():
+        rows.append(
+            (
+                f"pipelined {name}",
+                f"{p['runs']} runs at {p['rate_hz']:.2f} Hz (loop {report.achieved_hz:.2f} Hz), "
+                f"{p['superseded']} starts superseded while it was busy",
+            )
+        )
+    for name, g in report.reentries_avoided.items():
+        if g["waited"] or g["coalesced"]:
+            rows.append(
+                (
+                    f"one call at a time ({name})",
+                    f"{g['waited']} calls waited for its running call, {g['coalesced']} served by a newer one",
+                )
+            )
+    for name, push in report.pushed.items():
+        if push["superseded"]:
+            rows.append((f"pushed {name}", f"{push['superseded']} pushes superseded while their reactions ran"))
+    if report.part_errors:
+        rows.append(("part errors", ", ".join(f"{k}: {v}" for k, v in report.part_errors.items())))
+    if report.watchdog_events:
+        failed = report.watchdog_failed_attempts
+        retried = f", {failed} failed writes retried" if failed else ""
+        rows.append(("watchdog", f"{report.watchdog_events} safe-state events{retried}"))
+    for name, u in report.unsafe_ms.items():
+        rows.append((f"unsafe ({name})", f"{u['events']} times, {u['total']:.0f} ms in all, longest {u['max']:.0f} ms"))
+    sp = report.safety_process
+    if sp is not None:
+        lost = sp.get("lost", 0)
+        lost_row = f"; lost {lost} times ({sp['lost_why'][-1]}), restarted {sp.get('restarts', 0)}" if lost else ""
+        rows.append(
+            (
+                "safety process",
+                f"guarded {', '.join(sp['outputs'])}; {sp['events']} safe-state events, "
+                f"{sp['failed_attempts']} failed writes retried{lost_row}",
+            )
+        )
+    if report.shutdown_abandoned:
+        rows.append(("shutdown abandoned", ", ".join(report.shutdown_abandoned)))
+    if report.longest_block_ms is not None:
+        ms, part = report.longest_block_ms
+        rows.append(("longest loop block", f"{ms:,.0f} ms by part {part!r}"))
+    rows.append(("stopped by", _STOP_WORDS.get(report.stop_reason, report.stop_reason)))
+    return profiler.table(rows)

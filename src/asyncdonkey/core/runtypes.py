@@ -17,12 +17,13 @@ from typing import TYPE_CHECKING, Any, Protocol
 if TYPE_CHECKING:  # types only: each of these modules imports this one
     from ..clock import Clock
     from ..memory import Memory
+    from ..safety.process import SafetyProcess
     from ..safety.watchdog import Watchdog
     from .partrun import PartRun
     from .pipeline import Reaction, ReentryGuard
     from .plan import Entry
 
-__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "ShutdownScope", "Stoppable"]
+__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "SafetyHost", "ShutdownScope", "Stoppable"]
 
 
 class RunningCall(Protocol):
@@ -117,3 +118,25 @@ class PipelineHost(Protocol):
     def get_executor(self) -> concurrent.futures.ThreadPoolExecutor: ...
 
     def background_failed(self, e: PartRun, exc: BaseException, what: str = ...) -> None: ...
+
+
+class SafetyHost(LoopActivity, Protocol):
+    """A drive as its safety attachment (``asyncdonkey.safety.attach``) sees it: the parts' runs, the clock, the
+    channels' origins, the stop request the safety process may make, and the watchdog and safety process it
+    attaches (and the drive reports on)."""
+
+    @property
+    def runs(self) -> Sequence[PartRun]: ...
+
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def mem(self) -> Memory: ...
+
+    #: set by the attachment: the in-process watchdog (``None``: none runs)
+    watchdog: Watchdog | None
+    #: set by the attachment: the safety process (``None``: none runs)
+    safety_process: SafetyProcess | None
+
+    def request_stop(self, reason: str = ...) -> None: ...

@@ -542,6 +542,9 @@ class PWMThrottle(_PWMPart):
 
     MIN_THROTTLE = -1
     MAX_THROTTLE = 1
+    #: the output that moves the car: its safety process serves it first, and the car stops it in-process when
+    #: it loses its guard (``asyncdonkey.safety.GuardedOutput.stops_motion``)
+    stops_motion = True
 
     def __init__(
         self,

@@ -97,10 +97,10 @@ CONFIGS = {  # name: (parts after the stamp, how many of them async, virtual clo
 
 def load_before(path: str) -> type:
     """The ``Drive`` class of another ``drive.py``, loaded as a module of this asyncdonkey (its relative imports
-    resolve here), so only the drive differs between the two sides. A ``drive.py`` of ``asyncdonkey.core`` imports
-    the clock as ``..clock``; one from before the core had its package, as ``.clock``."""
-    package = "asyncdonkey.core" if "from ..clock import" in Path(path).read_text() else "asyncdonkey"
-    spec = importlib.util.spec_from_file_location(f"{package}._drive_before", path)
+    resolve here), so only the drive differs between the two sides. It must be a ``drive.py`` of
+    ``asyncdonkey.core`` whose ``Drive`` runs its own lifecycle (``Drive.run``, which ``Vehicle.run`` awaits); to
+    compare with an older tree, compare whole trees (``--base-tree``)."""
+    spec = importlib.util.spec_from_file_location("asyncdonkey.core._drive_before", path)
     if spec is None or spec.loader is None:
         raise SystemExit(f"tick_ab: cannot load {path} as a module")
     module = importlib.util.module_from_spec(spec)

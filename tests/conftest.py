@@ -46,8 +46,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 from asyncdonkey.clock.virtual_loop import VirtualClockLoop
+
+# Property tests assert behaviour, not speed: hypothesis's default 200 ms deadline per example turns a loaded CI
+# machine's pause into a failure (DeadlineExceeded, or Flaky when the replay is fast). Timing lives in benchmarks/.
+settings.register_profile("asyncdonkey", deadline=None)
+settings.load_profile("asyncdonkey")
 
 KINDS = ("realtime", "browser", "donkeycar", "network", "subprocess")
 TESTS = Path(__file__).resolve().parent

@@ -176,3 +176,39 @@ async def test_runtime_clock_is_the_virtual_loop():
     assert clock.is_virtual
     await asyncio.sleep(12.5)
     assert clock.now() == 12.5
+
+
+class _LateStart:
+    """A background task that takes ``late_s`` of loop time as soon as it runs (right after the first tick), as a
+    loaded machine does: the next tick comes late and the deadlines before it are skipped."""
+
+    def __init__(self, late_s: float) -> None:
+        self.late_s = late_s
+
+    async def update(self) -> None:
+        asyncio.get_running_loop().jump(self.late_s)  # type: ignore[attr-defined]
+        await asyncio.sleep(3600)
+
+    def run_threaded(self) -> None:
+        return None
+
+
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+async def test_the_summary_of_a_drive_with_skipped_deadlines_adds_up_and_never_claims_more_than_the_asked_rate():
+    """Seen under load: 'loops: 87 in 4.242 s', 'achieved: 20.280 Hz of 20 Hz', 'skipped deadlines: 13' for a
+    5 s drive (its first tick came late; counted from that tick's start, the rate looked higher than asked). The
+    drive's time counts from its first deadline, so the loops and the skipped deadlines add up to the deadlines in
+    it, and the achieved rate is never above the asked one."""
+    v = Vehicle()
+    v.add(_LateStart(0.66), threaded=True)
+    v.add(Await(0.0))
+    report = await v.run(rate_hz=20, duration=5.0)
+    # tick 0 on time; the tick at 0.66 s serves deadline 1 late and deadlines 2..13 are skipped
+    assert report.skipped_deadlines == 12 and report.loops == 88
+    assert report.loops + report.skipped_deadlines == 100  # every deadline of the 5 s is a tick or a skip
+    assert report.elapsed_s == pytest.approx(4.95, abs=1e-9)  # first deadline to the last tick's end
+    assert report.achieved_hz <= 20.0
+    assert report.achieved_hz == pytest.approx(87 / 4.95)  # 17.58 Hz: 88 ticks where 100 were asked for
+    summary = v.format_report(report)
+    assert "88 in 4.950 s" in summary and "17.576 Hz of 20 Hz" in summary

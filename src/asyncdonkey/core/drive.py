@@ -470,7 +470,7 @@ class Drive:
     ) -> tuple[Schedule, float, float]:
         """The ticks' deadlines from the first one (:attr:`t0`, or ``now`` when none was fixed), and the limits
         :meth:`_ticks` checks before each tick: the tick count to stop at and the deadline to stop at."""
-        t0 = now if self.t0 is None else self.t0
+        self.t0 = t0 = now if self.t0 is None else self.t0
         self.first_start = self.last_start = self.last_end = t0
         stop_at = math.inf if max_loop_count is None else max_loop_count
         end_at = math.inf if duration is None else t0 + duration
@@ -628,8 +628,11 @@ class Drive:
         r.loops = self.loops
         r.overruns = self.overruns
         r.skipped_deadlines = self.skipped
-        r.elapsed_s = (self.last_end - self.first_start) if self.loops else 0.0
-        span = self.last_start - self.first_start
+        # from the first deadline, not the first start: a late first tick must not make the rate look higher
+        # than asked (docs of DriveReport.achieved_hz)
+        t0 = self.first_start if self.t0 is None else min(self.t0, self.first_start)
+        r.elapsed_s = (self.last_end - t0) if self.loops else 0.0
+        span = self.last_start - t0
         r.achieved_hz = (self.loops - 1) / span if self.loops > 1 and span > 0 else 0.0
         stats = self.profiler.as_dict()
         r.parts = stats["parts"]

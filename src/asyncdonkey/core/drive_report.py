@@ -29,9 +29,11 @@ class DriveReport:
 
     Attributes:
         loops: ticks run.
-        elapsed_s: from the start of the first tick to the end of the last.
-        achieved_hz: ``(loops - 1) / (last tick start - first tick start)``; equals ``rate_hz`` when every
-            tick starts on its deadline.
+        elapsed_s: from the first tick's deadline to the end of the last tick. Anchored at the deadline, not at
+            the first tick's start: a drive whose first ticks came late (a loaded machine at start-up) counts
+            that time too, so ``loops + skipped_deadlines`` is the number of deadlines in it.
+        achieved_hz: ``(loops - 1) / (last tick start - first tick's deadline)``; ``rate_hz`` when every tick
+            starts on its deadline, and never more: tick ``i`` cannot start before deadline ``i``.
         rate_hz: the requested rate.
         overruns: ticks that took longer than one period.
         skipped_deadlines: deadlines dropped because the loop was more than a period behind.

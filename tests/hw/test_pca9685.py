@@ -108,7 +108,13 @@ def test_async_frequency_change(sim, model, buses):
 # --------------------------------------------------------------------------------- the model
 
 
-def test_model_restart_needs_500us_after_wake(sim, model):
+def test_model_restart_needs_500us_after_wake():
+    # the model's clock stands still unless the test moves it: "too early" must not depend on how fast two
+    # writes follow each other in real time (under qemu, or on a loaded machine, they can be 500 us apart)
+    now = [100.0]
+    model = PCA9685Model(clock=lambda: now[0])
+    sim = I2CSimulator()
+    sim.attach(model, address=0x40, bus=1)
     s = sim.smbus(1)
     s.write_byte_data(0x40, 0x00, 0x21)  # wake with AI
     s.write_i2c_block_data(0x40, 0x06, [0, 0, 100, 0])
@@ -116,8 +122,12 @@ def test_model_restart_needs_500us_after_wake(sim, model):
     s.write_byte_data(0x40, 0x00, 0x31)  # sleep: the running chip sets RESTART
     assert s.read_byte_data(0x40, 0x00) == 0xB1 and model.pulse(0) == 0
     s.write_byte_data(0x40, 0x00, 0x21)
-    s.write_byte_data(0x40, 0x00, 0xA1)  # too early
+    now[0] += 0.0004
+    s.write_byte_data(0x40, 0x00, 0xA1)  # too early: 400 us after waking
     assert model.early_restarts == 1 and model.restart_pending and model.pulse(0) == 0
+    now[0] += 0.0001
+    s.write_byte_data(0x40, 0x00, 0xA1)  # 500 us after waking: the pulses resume
+    assert model.early_restarts == 1 and not model.restart_pending and model.pulse(0) == 100
     s.close()
 
 

@@ -175,7 +175,18 @@ def other_python() -> str | None:
 
 
 def make(*args: str) -> subprocess.CompletedProcess[str]:
-    return run("make", "--no-print-directory", "-C", ROOT, *args, timeout=60)
+    """``make`` as a user at a shell runs it: not as a sub-make of the ``make test`` running this suite.
+
+    The outer make hands its command-line variables down through MAKEFLAGS (CI runs ``make test PYTHON=…
+    VENV=.venv313``), and a sub-make takes them over its own command line; without this the test would check
+    the outer call's VENV, not what the PYTHON given here picks.
+    """
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "MAKEFLAGS", "MFLAGS",
+                                                             "MAKELEVEL", "MAKEOVERRIDES", "VENV", "PYTHON")}
+    return subprocess.run(
+        ["make", "--no-print-directory", "-C", str(ROOT), *args],
+        capture_output=True, text=True, timeout=60, env=env, check=False,
+    )
 
 
 needs_make = pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")

@@ -105,8 +105,8 @@ test-loaded: $(VENV)/.test $(CHROMIUM)  ## the whole suite beside one busy proce
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 # The fast suite on the Raspberry Pi's architecture and Python: an arm64 Debian 12 root (Raspberry Pi OS Bookworm's
-# base), made once with debootstrap, runs make test-fast under qemu-user. Needs root; not in CI: it is slow (the
-# root ~7-15 min once, then the suite several times slower than here). What it proves and cannot: docs/raspberry-pi.md.
+# base), made once with debootstrap, runs make test-fast under qemu-user. Needs root; not in CI: it is slow (on 2
+# cores: the root 7 min and its venv 6.5 min once, then the suite ~10 min). What it proves: docs/raspberry-pi.md.
 test-aarch64:  ## the fast suite in an arm64 Debian 12 root under qemu-user (as root; slow; not in CI)
 	.ci/test-aarch64 $(PYTEST_ARGS)
 

@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT / "examples"))
 sys.path.insert(0, str(ROOT / "tests" / "safety"))
 
 from asyncdonkey import Contracts, Memory, Vehicle  # noqa: E402
-from asyncdonkey.core.plan import build_entry, checked_store  # noqa: E402
+from asyncdonkey.core.plan import PartOptions, build_entry, checked_store  # noqa: E402
 from asyncdonkey.loop import run_blocking  # noqa: E402
 from machine_info import describe  # noqa: E402
 
@@ -234,7 +234,7 @@ def provenance(n: int) -> dict:
         return fn
 
     def entry(part, name, ins, outs):
-        return build_entry(mem, part, name, ins, outs, False, None, False, "stop", 2.0, None, None, offload)
+        return build_entry(mem, part, PartOptions(name=name, inputs=ins, outputs=outs), offload)
 
     drive_ins = ["user/mode", "user/angle", "user/throttle", "pilot/angle", "pilot/throttle"]
     one = entry(One(), "one", ["x"], ["y"])
@@ -282,7 +282,7 @@ def checked_mode(n: int) -> dict:
         return fn
 
     def entry(name: str, ins: list[str], outs: list[str]):
-        return build_entry(mem, Part(), name, ins, outs, False, None, False, "stop", 2.0, None, None, offload)
+        return build_entry(mem, Part(), PartOptions(name=name, inputs=ins, outputs=outs), offload)
 
     frame = np.zeros((120, 160, 3), np.uint8)
     cases = (

@@ -26,7 +26,7 @@ from .contracts import Contract, Contracts
 from .core.buildscope import note_vehicle
 from .core.drive import Drive
 from .core.drive_report import DriveReport, format_report
-from .core.plan import AGE_SUFFIX, Entry, OnError, build_entry, make_offload
+from .core.plan import AGE_SUFFIX, Entry, OnError, PartOptions, build_entry, make_offload
 from .core.profiler import Profiler
 from .core.signals import stop_on_signals
 from .errors import AsyncdonkeyError, OutputCountError, PartError, PartSpecError, PartTimeoutError
@@ -200,24 +200,22 @@ class Vehicle:
         if self._drive is not None:
             raise PartSpecError(f"Vehicle.add({label}): parts cannot be added while the vehicle is running")
         self._take_contracts(part, label)
-        e = build_entry(
-            self.mem,
-            part,
-            self._unique_name(label),
-            inputs,
-            outputs,
-            threaded,
-            run_condition,
-            executor,
-            on_error,
-            shutdown_timeout,
-            timeout,
-            actuator,
-            self._offload,
-            pipelined,
-            trigger,
-            react,
+        options = PartOptions(
+            name=self._unique_name(label),
+            inputs=inputs,
+            outputs=outputs,
+            threaded=threaded,
+            run_condition=run_condition,
+            executor=executor,
+            on_error=on_error,
+            shutdown_timeout=shutdown_timeout,
+            timeout=timeout,
+            actuator=actuator,
+            pipelined=pipelined,
+            trigger=trigger,
+            react=react,
         )
+        e = build_entry(self.mem, part, options, self._offload)
         self.profiler.series_for(e.name)  # listed in the profiler from now on, before any drive
         self.parts.append(e)
         logger.debug("added part %s inputs=%s outputs=%s", e.name, e.inputs, e.outputs)
@@ -343,8 +341,8 @@ class Vehicle:
 
     def shutdown_deadline_s(self) -> float:
         """The longest shutdown can take: the safe-state phase, then the slowest of the other parts."""
-        actuators = [e.shutdown_timeout for e in self.parts if e.actuator] or [0.0]
-        others = [e.shutdown_timeout for e in self.parts if not e.actuator] or [0.0]
+        actuators = [e.shutdown.timeout for e in self.parts if e.actuator] or [0.0]
+        others = [e.shutdown.timeout for e in self.parts if not e.actuator] or [0.0]
         return max(actuators) + max(others) + 1.0
 
     # -------------------------------------------------------------------------------------- start()

@@ -71,7 +71,7 @@ async def test_a_donkeycar_vehicle_converts_with_its_parts_and_memory():
     dk.add(Lambda(lambda c: c * 2), inputs=["constant"], outputs=["doubled"])
     dk.add(Lambda(lambda: "ran"), outputs=["cond_part"], run_condition="never_set")
     v = Vehicle.from_donkeycar(dk)
-    assert [e.background for e in v.parts] == [Background.THREAD, Background.NONE, Background.NONE]
+    assert [e.beside.background for e in v.parts] == [Background.THREAD, Background.NONE, Background.NONE]
     await v.run(20, 2)
     assert v.mem["doubled"] == 6
     assert "cond_part" not in v.mem

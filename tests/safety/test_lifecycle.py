@@ -283,9 +283,6 @@ async def test_shutdown_timeout_reaches_a_part_that_takes_one(tmp_path):
     from asyncdonkey.parts.tub import TubWriter
 
     writer = TubWriter(tmp_path / "tub", inputs=["n"], types=["int"])
-    v = Vehicle()
-    v.add(Count(), outputs=["n"])
-    v.add(writer, inputs=["n"], outputs=["tub/num_records"], shutdown_timeout=10)
     seen = {}
     original = writer.shutdown
 
@@ -293,7 +290,9 @@ async def test_shutdown_timeout_reaches_a_part_that_takes_one(tmp_path):
         seen["timeout"] = timeout
         return original(timeout=timeout)
 
-    writer.shutdown = spy  # the entry was prepared at add(): rebind what it calls
-    v.parts[-1].shutdown_fn = spy
+    writer.shutdown = spy  # before add(): the entry, frozen there, keeps the shutdown it found
+    v = Vehicle()
+    v.add(Count(), outputs=["n"])
+    v.add(writer, inputs=["n"], outputs=["tub/num_records"], shutdown_timeout=10)
     await v.run(20, 5)
     assert seen["timeout"] == 10

@@ -25,6 +25,8 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
+from .plan import Entry
+
 __all__ = ["BuildScope", "collecting", "note_vehicle", "register_close"]
 
 logger = logging.getLogger(__name__)
@@ -95,25 +97,25 @@ def shut_down_parts(entries: Sequence[Any]) -> list[str]:
     """Shut the parts of a vehicle that never drove down: actuators first, then the rest, each phase's parts
     concurrently on daemon threads, each bounded by its ``shutdown_timeout``. Returns the names of the parts
     whose shutdown failed or was abandoned."""
-    with_shutdown = [e for e in entries if getattr(e, "shutdown_fn", None) is not None]
+    with_shutdown = [e for e in entries if isinstance(e, Entry) and e.shutdown.fn is not None]
     failed: list[str] = []
     for phase in ([e for e in with_shutdown if e.actuator], [e for e in with_shutdown if not e.actuator]):
         failed += _shut_down_phase(phase)
     return failed
 
 
-def _shut_down_phase(entries: Sequence[Any]) -> list[str]:
+def _shut_down_phase(entries: Sequence[Entry]) -> list[str]:
     outcomes: dict[str, BaseException | None] = {}
-    threads: list[tuple[Any, threading.Thread, float]] = []
+    threads: list[tuple[Entry, threading.Thread, float]] = []
     for e in entries:
         t = threading.Thread(target=_shut_down_one, args=(e, outcomes), name=f"shutdown:{e.name}", daemon=True)
-        threads.append((e, t, time.monotonic() + e.shutdown_timeout + 0.5))
+        threads.append((e, t, time.monotonic() + e.shutdown.timeout + 0.5))
         t.start()
     failed: list[str] = []
     for e, t, deadline in threads:
         t.join(max(0.0, deadline - time.monotonic()))
         if t.is_alive():
-            logger.error("part %r: shutdown() did not finish within %.1f s; abandoned", e.name, e.shutdown_timeout)
+            logger.error("part %r: shutdown() did not finish within %.1f s; abandoned", e.name, e.shutdown.timeout)
             failed.append(e.name)
         elif (exc := outcomes.get(e.name)) is not None:
             logger.error("part %r: shutdown() raised %s: %s", e.name, type(exc).__name__, exc)
@@ -121,11 +123,12 @@ def _shut_down_phase(entries: Sequence[Any]) -> list[str]:
     return failed
 
 
-def _shut_down_one(e: Any, outcomes: dict[str, BaseException | None]) -> None:
-    fn = e.shutdown_fn
-    kwargs = {"timeout": e.shutdown_timeout} if e.shutdown_takes_timeout else {}
+def _shut_down_one(e: Entry, outcomes: dict[str, BaseException | None]) -> None:
+    plan = e.shutdown
+    fn = plan.fn
+    kwargs = {"timeout": plan.timeout} if plan.takes_timeout else {}
     try:
-        result = fn(**kwargs)
+        result = fn(**kwargs) if fn is not None else None
         if inspect.iscoroutine(result):  # an async shutdown, or a sync one handing back a coroutine
             asyncio.run(result)
     except BaseException as exc:

@@ -147,7 +147,7 @@ class Drive:
         # a guarded part sits in the tick as its GuardedTick: its column is found through the GuardedTick's run
         column = {id(getattr(t, "run", t)): col for col, t in enumerate(self.tick_runs)}
         for r in self.runs:
-            if r.entry.pipelined:
+            if r.entry.beside.pipelined:
                 r.series = profiler.series_for(r.name)
             else:
                 r.series = profiler.parts[r.name] = TableSeries(r.name, table, column[id(r)], skip_first=True)
@@ -287,11 +287,11 @@ class Drive:
             )
         for r in self.runs:
             e = r.entry
-            if e.background is Background.THREAD:
+            if e.beside.background is Background.THREAD:
                 t = threading.Thread(target=self._thread_main, args=(r,), name=f"part:{e.name}", daemon=True)
                 self.threads.append((e, t))
                 t.start()
-            elif e.background is Background.TASK:
+            elif e.beside.background is Background.TASK:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
                 task.add_done_callback(functools.partial(self._task_done, r))
                 self.tasks.append((e, task))

@@ -77,7 +77,7 @@ class Pipeline:
         self.entry = run.entry
         self.react = react
         self.name = run.name
-        self.trigger = run.entry.trigger
+        self.trigger = run.entry.beside.trigger
         self._kick = asyncio.Event()
         self.busy = False
         self.runs = 0
@@ -248,7 +248,7 @@ def react_chain(runs: Sequence[PartRun], channels: set[str]) -> list[PartRun]:
     chain: list[PartRun] = []
     channels = set(channels)
     for r in runs:
-        if r.entry.react and channels.intersection(i for i in r.inputs if i is not None):
+        if r.entry.beside.react and channels.intersection(i for i in r.inputs if i is not None):
             chain.append(r)
             channels.update(r.outputs)
     return chain
@@ -571,7 +571,7 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
     pipelines: list[Pipeline] = []
     tick: list[Any] = []
     for e in entries:
-        if not e.entry.pipelined:
+        if not e.entry.beside.pipelined:
             tick.append(e)
             continue
         p = Pipeline(drive, e, react_chain(entries, set(e.outputs)))
@@ -582,7 +582,7 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
         if p.trigger is not None:
             by_trigger.setdefault(p.trigger, []).append(p)
     for e in entries:
-        if e.entry.pipelined:
+        if e.entry.beside.pipelined:
             continue
         fed = [(k, p) for k in e.outputs for p in by_trigger.get(k, ())]
         e.kicks = tuple(fed)

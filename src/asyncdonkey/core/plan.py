@@ -34,6 +34,7 @@ import logging
 import math
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, TypeGuard
 
 from ..contracts import ContractViolation
@@ -44,7 +45,17 @@ from .origin_sources import OutputSources, declared_sources
 if TYPE_CHECKING:
     from ..contracts import Contract, Contracts
 
-__all__ = ["AGE_SUFFIX", "Background", "Entry", "OnError", "build_entry", "checked_store"]
+__all__ = [
+    "AGE_SUFFIX",
+    "Background",
+    "BesideTicks",
+    "Entry",
+    "OnError",
+    "PartOptions",
+    "ShutdownPlan",
+    "build_entry",
+    "checked_store",
+]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
@@ -84,97 +95,113 @@ def background_of(threaded: bool, async_update: bool) -> Background:
     return Background.THREAD if threaded else Background.NONE
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PartOptions:
+    """What ``Vehicle.add()`` is given for one part, besides the part itself: :func:`build_entry` checks each and
+    names the part and the argument when one is wrong.
+
+    Typed as ``add()`` documents them, but checked anyway: a car file is Python written by hand, and a wrong value
+    here should be one clear line at ``add()``, not a surprise on the first tick. The defaults are ``add()``'s."""
+
+    #: the part's unique name in the vehicle (reports, errors)
+    name: str
+    inputs: Sequence[str | None] | None = ()
+    outputs: Sequence[str] | None = ()
+    threaded: bool = False
+    run_condition: str | None = None
+    executor: bool = False
+    on_error: OnError = "stop"
+    shutdown_timeout: float = 2.0
+    timeout: float | None = None
+    #: ``None``: decided from the part (``safe_state_sync``, or one of Donkeycar's actuator classes)
+    actuator: bool | None = None
+    pipelined: bool = False
+    trigger: str | None = None
+    react: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class BesideTicks:
+    """What runs for a part outside its place in the tick, decided at ``add()``: its background work
+    (``update()``), whether it is pipelined (and on which input's new values it starts), and whether it also reacts
+    to what a pipelined part or a push source publishes (``asyncdonkey.core.pipeline``)."""
+
+    background: Background = Background.NONE
+    pipelined: bool = False
+    #: a pipelined part's input whose new values start it (``None``: it starts at its place in the tick)
+    trigger: str | None = None
+    react: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class ShutdownPlan:
+    """How a part is shut down at the end of a drive (``asyncdonkey.core.shutdown``): its ``shutdown`` method
+    (``None``: it has none), whether that takes a ``timeout`` keyword, and the seconds it is allowed."""
+
+    fn: Callable[..., Any] | None
+    takes_timeout: bool
+    timeout: float
+
+
+@dataclass(frozen=True, slots=True, eq=False, kw_only=True)
 class Entry:
     """One part as ``add()`` planned it: how to call it, read its inputs and store its outputs.
 
-    Fixed at ``add()`` and never written while the car drives: a drive keeps what it learns about a part (errors,
-    timings, latency recorder, pipeline kicks, guard, checked stores) in a
-    :class:`~asyncdonkey.core.partrun.PartRun` of its own, so the next drive starts from the same plan."""
+    Frozen: fixed at ``add()`` and never written while the car drives. A drive keeps what it learns about a part
+    (errors, timings, latency recorder, pipeline kicks, guard, checked stores) in a
+    :class:`~asyncdonkey.core.partrun.PartRun` of its own, so the next drive starts from the same plan; the
+    frozen dataclass makes a write to the plan an error instead of a leak from one drive into the next.
 
-    __slots__ = (
-        "actuator",
-        "args",
-        "awaits",
-        "background",
-        "call",
-        "executor",
-        "fn",
-        "input_origin",
-        "inputs",
-        "is_sync_inline",
-        "name",
-        "on_error",
-        "outputs",
-        "part",
-        "pipelined",
-        "react",
-        "run_condition",
-        "shutdown_fn",
-        "shutdown_takes_timeout",
-        "shutdown_timeout",
-        "store",
-        "store_fixed",
-        "timeout",
-        "trigger",
-    )
+    Compared by identity (``eq=False``): an entry is one ``add()`` call, and two adds of the same part are two
+    entries (a part need not be hashable or comparable). The tick never reads an entry: it reads the copies on
+    the drive's runs (``core/partrun.py``), so the frozen dataclass's construction cost is paid once, at ``add()``.
+    """
 
-    # set by build_entry(), once (declared here so that the slots have types)
     part: Any
     name: str
     inputs: tuple[str | None, ...]
     outputs: tuple[str, ...]
     run_condition: str | None
     on_error: OnError
-    shutdown_timeout: float
+    #: an awaited call's bound in seconds (``None``: unbounded)
     timeout: float | None
-    background: Background
+    #: a sync ``run`` offloaded to the drive's worker pool (``executor=True``, or pipelined)
     executor: bool
+    #: the tick awaits the call (an ``async`` run, or an offloaded one); ``is_sync_inline`` is its opposite: the
+    #: call holds the loop thread until it returns
     awaits: bool
     is_sync_inline: bool
     #: the part's own method (``run`` or ``run_threaded``), and what the tick calls (offloaded, bounded)
     fn: Callable[..., Any]
     call: Callable[..., Any]
+    #: ``args()``: the inputs' values (and ages) as the call takes them
     args: Callable[[], Sequence[Any]]
+    #: ``store(result, args, now)``: the outputs with their write time and origin (``None``: no outputs)
     store: Callable[[Any, Sequence[Any], float], None] | None
-    shutdown_fn: Callable[..., Any] | None
-    shutdown_takes_timeout: bool
+    #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them; ``None`` for a
+    #: part without inputs, a source sensed when it reads them) and a store that writes the outputs with a given
+    #: origin (the inputs may have moved on meanwhile)
+    input_origin: Callable[[], float] | None
+    store_fixed: Callable[[Any, float, float], None] | None
+    #: shut down in the first, safe-state phase
     actuator: bool
-
-    def __init__(self) -> None:
-        self.pipelined = False
-        self.trigger: str | None = None
-        self.react = False
-        #: pipelined parts: the origin of the inputs as they are now (taken when the worker reads them; ``None``
-        #: for a part without inputs, a source sensed when it reads them) and a store that writes the outputs
-        #: with a given origin (the inputs may have moved on meanwhile)
-        self.input_origin: Callable[[], float] | None = None
-        self.store_fixed: Callable[[Any, float, float], None] | None = None
+    beside: BesideTicks
+    shutdown: ShutdownPlan
 
 
 def build_entry(
-    mem: Memory,
-    part: Any,
-    name: str,
-    inputs: Any,
-    outputs: Any,
-    threaded: Any,
-    run_condition: Any,
-    executor: Any,
-    on_error: Any,
-    shutdown_timeout: Any,
-    timeout: Any,
-    actuator: Any,
-    offload: Callable[[Callable[..., Any]], Callable[..., Any]],
-    pipelined: Any = False,
-    trigger: Any = None,
-    react: Any = False,
+    mem: Memory, part: Any, options: PartOptions, offload: Callable[[Callable[..., Any]], Callable[..., Any]]
 ) -> Entry:
-    """Validate one ``Vehicle.add`` call and prepare its :class:`Entry`; errors name the part and argument."""
+    """Validate one ``Vehicle.add`` call (``options``) and prepare its :class:`Entry`; errors name the part and
+    argument. ``offload(fn)`` is how an ``executor=True`` part's calls reach the drive's worker pool."""
+    o = options
+    name = o.name
     where = f"Vehicle.add({name})"
-    ins = _channel_list(inputs, "inputs", where, none_ok=True)
-    outs = _channel_list(outputs, "outputs", where)
-    _check_options(where, ins, outs, threaded, executor, run_condition, on_error, shutdown_timeout, timeout)
-    _check_pipelining(where, ins, threaded, pipelined, trigger, react, actuator)
+    ins = _channel_list(o.inputs, "inputs", where, none_ok=True)
+    outs = _channel_list(o.outputs, "outputs", where)
+    threaded, executor, pipelined, timeout = o.threaded, o.executor, o.pipelined, o.timeout
+    _check_options(where, ins, outs, threaded, executor, o.run_condition, o.on_error, o.shutdown_timeout, timeout)
+    _check_pipelining(where, ins, threaded, pipelined, o.trigger, o.react, o.actuator)
 
     async_update = inspect.iscoroutinefunction(getattr(part, "update", None))
     fn, method = _run_method(part, name, where, threaded, async_update)
@@ -191,39 +218,45 @@ def build_entry(
         )
     _check_arity(fn, len(ins), where, method)
 
-    e = Entry()
-    e.part = part
-    e.name = name
-    e.inputs = ins
-    e.outputs = outs
-    e.run_condition = run_condition
-    e.on_error = on_error
-    e.shutdown_timeout = float(shutdown_timeout)
-    e.timeout = None if timeout is None else float(timeout)
-    e.background = background_of(threaded, async_update)
-    e.executor = executor
-    e.awaits = awaits
-    e.pipelined = pipelined
-    e.trigger = trigger
-    e.react = react
-    e.is_sync_inline = not awaits
-    e.fn = fn  # the part's own method: a guarded executor part's calls are offloaded by its guard, which sees them end
+    bound = None if timeout is None else float(timeout)
     call = offload(fn) if executor else fn
-    e.call = with_timeout(call, e.timeout, name) if e.timeout is not None else call
-    e.args = _arg_getter(mem, ins)
     origin_fn = getattr(part, "output_origin", None)
-    e.store = _storer(mem, name, part, ins, outs, origin_fn if callable(origin_fn) else None)
-    e.input_origin = _input_origin(mem, ins) if _input_channels(ins) else None
-    e.store_fixed = _fixed_storer(mem, name, outs)
+    return Entry(
+        part=part,
+        name=name,
+        inputs=ins,
+        outputs=outs,
+        run_condition=o.run_condition,
+        on_error=o.on_error,
+        timeout=bound,
+        executor=executor,
+        awaits=awaits,
+        is_sync_inline=not awaits,
+        fn=fn,  # the part's own method: a guarded executor part's calls are offloaded by its guard, which sees them end
+        call=with_timeout(call, bound, name) if bound is not None else call,
+        args=_arg_getter(mem, ins),
+        store=_storer(mem, name, part, ins, outs, origin_fn if callable(origin_fn) else None),
+        input_origin=_input_origin(mem, ins) if _input_channels(ins) else None,
+        store_fixed=_fixed_storer(mem, name, outs),
+        actuator=_is_actuator(part, o.actuator),
+        beside=BesideTicks(background_of(threaded, async_update), pipelined, o.trigger, o.react),
+        shutdown=_shutdown_plan(part, o.shutdown_timeout),
+    )
+
+
+def _is_actuator(part: Any, said: bool | None) -> bool:
+    """``actuator=None`` decides from the part: it has ``safe_state_sync``, or it is one of Donkeycar's actuators."""
+    if said is not None:
+        return said
+    return callable(getattr(part, "safe_state_sync", None)) or type(part).__module__.startswith(
+        _DONKEYCAR_ACTUATOR_MODULES
+    )
+
+
+def _shutdown_plan(part: Any, timeout: float) -> ShutdownPlan:
     shutdown = getattr(part, "shutdown", None)
-    e.shutdown_fn = shutdown if callable(shutdown) else None
-    e.shutdown_takes_timeout = e.shutdown_fn is not None and _accepts_keyword(e.shutdown_fn, "timeout")
-    if actuator is None:
-        actuator = callable(getattr(part, "safe_state_sync", None)) or type(part).__module__.startswith(
-            _DONKEYCAR_ACTUATOR_MODULES
-        )
-    e.actuator = actuator
-    return e
+    fn = shutdown if callable(shutdown) else None
+    return ShutdownPlan(fn, fn is not None and _accepts_keyword(fn, "timeout"), float(timeout))
 
 
 def _check_options(

@@ -77,11 +77,12 @@ def in_daemon_thread(
 
 
 async def _shutdown_one(e: Entry, loop: asyncio.AbstractEventLoop, abandoned: list[str]) -> None:
-    fn = e.shutdown_fn
+    plan = e.shutdown
+    fn = plan.fn
     if fn is None:
         return
-    kwargs = {"timeout": e.shutdown_timeout} if e.shutdown_takes_timeout else {}
-    limit = e.shutdown_timeout + (_SELF_BOUNDED_MARGIN_S if kwargs else 0.0)
+    kwargs = {"timeout": plan.timeout} if plan.takes_timeout else {}
+    limit = plan.timeout + (_SELF_BOUNDED_MARGIN_S if kwargs else 0.0)
     try:
         if inspect.iscoroutinefunction(fn):
             await asyncio.wait_for(fn(**kwargs), limit)
@@ -120,7 +121,7 @@ async def _phase(
 async def shutdown_drive(drive: ShutdownScope) -> bool:
     """Shut every part of ``drive`` down exactly once (module docstring). Returns True if cancelled meanwhile."""
     loop = drive.loop
-    entries = [e for e in drive.entries if e.shutdown_fn is not None]
+    entries = [e for e in drive.entries if e.shutdown.fn is not None]
     abandoned = drive.abandoned
     cancelled = await _phase([e for e in entries if e.actuator], loop, abandoned, finish_on_cancel=True)
     if drive.watchdog is not None:
@@ -132,7 +133,7 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
     if not cancelled:
         for e, task in drive.tasks:
             try:
-                await asyncio.wait_for(task, e.shutdown_timeout)
+                await asyncio.wait_for(task, e.shutdown.timeout)
             except asyncio.CancelledError:
                 if not task.cancelled():  # we, not the task, were cancelled
                     cancelled = True
@@ -143,7 +144,7 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
             if cancelled:
                 break
             try:
-                await in_daemon_thread(loop, t.join, e.shutdown_timeout, name=f"join:{e.name}")
+                await in_daemon_thread(loop, t.join, e.shutdown.timeout, name=f"join:{e.name}")
             except asyncio.CancelledError:
                 cancelled = True
             if t.is_alive():
@@ -151,7 +152,7 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
                 logger.error(
                     "part %r: update() thread still running %.1f s after shutdown(); abandoned (daemon thread)",
                     e.name,
-                    e.shutdown_timeout,
+                    e.shutdown.timeout,
                 )
     if drive.executor is not None:
         drive.executor.shutdown(wait=False, cancel_futures=True)

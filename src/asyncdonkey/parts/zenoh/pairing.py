@@ -127,8 +127,10 @@ class PairFiles:
     valid: tuple[datetime.datetime, datetime.datetime] | None = None
 
 
-def car_acl(prefix: str, pilot_cn: str, commands: Sequence[str] = DEFAULT_COMMANDS) -> dict:
-    """The car's ``access_control`` section: commands only from ``pilot_cn``, reading for every authenticated peer."""
+def car_acl(prefix: str, pilot_cn: str | Sequence[str], commands: Sequence[str] = DEFAULT_COMMANDS) -> dict:
+    """The car's ``access_control`` section: commands only from ``pilot_cn`` (one name, or the names of a
+    primary server and its standby), reading for every authenticated peer."""
+    pilots = [pilot_cn] if isinstance(pilot_cn, str) else list(pilot_cn)
     prefix = prefix.strip("/")
     command_keys = [f"{prefix}/{c.strip('/')}" for c in commands]
     return {
@@ -158,7 +160,7 @@ def car_acl(prefix: str, pilot_cn: str, commands: Sequence[str] = DEFAULT_COMMAN
             },
         ],
         "subjects": [
-            {"id": "pilot-host", "cert_common_names": [pilot_cn]},
+            {"id": "pilot-host", "cert_common_names": pilots},
             {"id": "authenticated"},  # with mTLS, every connected session holds a certificate of this CA
         ],
         "policies": [
@@ -298,15 +300,36 @@ class FleetFiles:
     view_configs: dict[str, Path] = field(default_factory=dict)
     #: when the certificates become valid and when they expire (UTC): every machine's clock must be inside
     valid: tuple[datetime.datetime, datetime.datetime] | None = None
+    #: the standby server's config and directory (``standby=``), or ``None``
+    standby_config: Path | None = None
+    standby_dir: Path | None = None
 
 
-def server_acl(cars: Sequence[str], views: Sequence[str] = (), prefix: str = "cars/{car}") -> dict:
+#: the subjects' ids naming the other server of a pair in a server's rules (read back by
+#: :func:`.standby.role_from_config`: a server learns its role from its config)
+PAIR_SUBJECTS = {"primary": "pair-standby", "standby": "pair-primary"}
+#: a server of a pair is declared gone by the other (and by the cars) after this long without a word from it
+#: when its connections are not closed (power cut, cable); a killed process's are closed by its OS at once
+PAIR_LEASE_MS = 1000
+
+
+def server_acl(
+    cars: Sequence[str],
+    views: Sequence[str] = (),
+    prefix: str = "cars/{car}",
+    pair: tuple[str, str] | None = None,
+    this: str = "primary",
+) -> dict:
     """The pilot server's ``access_control`` section (it routes for the fleet; see the module docstring).
 
     Per car ``X`` (certificate ``CN=X``): put, delete and subscribe only under ``cars/X/**``, receive only
     ``cars/X/**``. Views: subscribe to anything, receive anything, put nothing. Every session may learn of the
     others' subscriptions (``declare_subscriber`` out), which carries no data: that is how a car learns the
     server wants its frames.
+
+    ``pair=(primary, standby)``: this server (``this``: ``"primary"`` or ``"standby"``) and the other may
+    exchange liveliness tokens, liveliness subscriptions and queries on ``pilot-servers/<primary>/**`` only
+    (:mod:`.standby`): no car's data passes between them, and neither learns the other's subscriptions.
     """
     rules: list[dict] = []
     subjects: list[dict] = []
@@ -342,8 +365,25 @@ def server_acl(cars: Sequence[str], views: Sequence[str] = (), prefix: str = "ca
             "key_exprs": ["**"],
         }
     )
-    subjects.append({"id": "authenticated"})
-    policies.append({"rules": ["declarations-out"], "subjects": ["authenticated"]})
+    if pair is None:
+        subjects.append({"id": "authenticated"})
+        policies.append({"rules": ["declarations-out"], "subjects": ["authenticated"]})
+    else:
+        primary, standby = pair
+        other = standby if this == "primary" else primary
+        subjects.append({"id": "fleet", "cert_common_names": [*cars, *views]})
+        policies.append({"rules": ["declarations-out"], "subjects": ["fleet"]})
+        rules.append(
+            {
+                "id": "pair-liveliness",
+                "permission": "allow",
+                "flows": ["ingress", "egress"],
+                "messages": ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query", "reply"],
+                "key_exprs": [f"pilot-servers/{primary}/**"],
+            }
+        )
+        subjects.append({"id": PAIR_SUBJECTS[this], "cert_common_names": [other]})
+        policies.append({"rules": ["pair-liveliness"], "subjects": [PAIR_SUBJECTS[this]]})
     if views:
         # a view receives everything (egress puts to it) and may subscribe (ingress declarations); its own puts
         # are ingress puts, and no rule allows them
@@ -389,25 +429,43 @@ def make_fleet(
     days: int = 825,
     force: bool = False,
     not_before: datetime.datetime | None = None,
+    standby: str | None = None,
+    standby_hosts: Sequence[str] = ("localhost",),
+    standby_port: int | None = None,
 ) -> FleetFiles:
     """Write one CA, the pilot server's certificate and config, and one certificate and config per car (and
     per fleet view): see the module docstring. Cars and views connect to the server at ``server_hosts[0]``
     (all of ``server_hosts`` go into its certificate); the server listens on ``listen_host:port``.
     ``force``: write over existing files (otherwise :class:`PairExists`). ``not_before``: as for
     :func:`make_pair`.
+
+    ``standby``: the name of a standby server for the same cars (written to ``<out>/standby/``), reached at
+    ``standby_hosts[0]:standby_port`` (default ``port``) and listening on ``listen_host:standby_port``. Every
+    car then connects to both servers and takes commands from either certificate; the two servers dial each
+    other and their rules let them exchange liveliness tokens on ``pilot-servers/<server>/**`` and nothing
+    else (:mod:`.standby` decides which one answers).
     """
     cars = list(cars)
     if not cars:
         raise ValueError("zenoh-pair --fleet: name at least one car (--cars car1 car2 ...)")
     if not server_hosts:
         raise ValueError("zenoh-pair --fleet: give at least one host name or address the cars reach the server by")
-    _check_names([*cars, server, *views], "car, server and view")
+    _check_names([*cars, server, *views, *([standby] if standby else [])], "car, server, standby and view")
+    if standby is not None and not standby_hosts:
+        raise ValueError("zenoh-pair --fleet: give at least one host name or address the standby is reached by")
+    s_port = port if standby_port is None else standby_port
     out = Path(out).resolve()
-    ca_dir, server_dir = out / "ca", out / "server"
+    ca_dir, server_dir, standby_dir = out / "ca", out / "server", out / "standby"
+    if standby is not None and s_port == port and list(standby_hosts)[:1] == list(server_hosts)[:1]:
+        raise ValueError(
+            f"zenoh-pair --fleet: the standby {standby!r} would be reached at the server's own address"
+            f" ({server_hosts[0]}:{port}): give it another host (--standby-host) or port (--standby-port)"
+        )
     _refuse_overwrite(
         [
             *_ca_paths(ca_dir),
             *_identity_paths(server_dir, server, "server.json5"),
+            *(_identity_paths(standby_dir, standby, "server.json5") if standby else []),
             *(p for car in cars for p in _identity_paths(out / car, car, "car.json5")),
             *(p for view in views for p in _identity_paths(out / view, view, f"{view}.json5")),
         ],
@@ -416,16 +474,24 @@ def make_fleet(
     ca_dir.mkdir(parents=True, exist_ok=True)
     issue = _Issuer(ca_dir, f"asyncdonkey fleet {server}", days, not_before)
     issue(server_dir, server, server_hosts)
-    host = server_hosts[0] if ":" not in server_hosts[0] else f"[{server_hosts[0]}]"
-    listen = listen_host if ":" not in listen_host else f"[{listen_host}]"
-    server_cfg = {
-        "mode": "router",  # it forwards each car's keys between that car, itself and the fleet views
-        "listen": {"endpoints": [f"tls/{listen}:{port}"]},
-        "connect": {"endpoints": []},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tls": _tls(server_dir, server, listen_side=True)}},
-        "access_control": server_acl(cars, views),
-    }
+    host = _bracket(server_hosts[0])
+    listen = _bracket(listen_host)
+    endpoints = [f"tls/{host}:{port}"]
+    server_cfg = _server_config(server_dir, server, f"tls/{listen}:{port}", server_acl(cars, views))
+    if standby is not None:
+        issue(standby_dir, standby, standby_hosts)
+        endpoints.append(f"tls/{_bracket(standby_hosts[0])}:{s_port}")
+        pair = (server, standby)
+        server_cfg = _server_config(
+            server_dir, server, f"tls/{listen}:{port}", server_acl(cars, views, pair=pair), dial=endpoints[1]
+        )
+        standby_cfg = _server_config(
+            standby_dir,
+            standby,
+            f"tls/{listen}:{s_port}",
+            server_acl(cars, views, pair=pair, this="standby"),
+            dial=endpoints[0],
+        )
     files = FleetFiles(
         server_config=server_dir / "server.json5",
         server_dir=server_dir,
@@ -434,21 +500,30 @@ def make_fleet(
         ca_key=ca_dir / "ca-key.pem",
         valid=issue.validity,
     )
+    role = f" (primary; standby {standby!r})" if standby else ""
     files.server_config.write_text(
-        f"// written by asyncdonkey zenoh-pair --fleet: pilot server {server!r} for cars {', '.join(cars)}\n"
+        f"// written by asyncdonkey zenoh-pair --fleet: pilot server {server!r}{role} for cars {', '.join(cars)}\n"
         + json.dumps(server_cfg, indent=2)
         + "\n"
     )
+    if standby is not None:
+        files.standby_config, files.standby_dir = standby_dir / "server.json5", standby_dir
+        files.standby_config.write_text(
+            f"// written by asyncdonkey zenoh-pair --fleet: pilot server {standby!r}, standby of {server!r}, for"
+            f" cars {', '.join(cars)}: it answers while {server!r} is not alive\n"
+            + json.dumps(standby_cfg, indent=2)
+            + "\n"
+        )
+    servers = [server, *([standby] if standby else [])]
     for car in cars:
         d = out / car
         issue(d, car, [car])
-        cfg = _connector(d, car, host, port)  # a peer: it starts (and stops, failsafe) before the server is up
-        cfg["access_control"] = car_acl(f"cars/{car}", server, commands)
+        cfg = _connector(d, car, endpoints)  # a peer: it starts (and stops, failsafe) before the server is up
+        cfg["access_control"] = car_acl(f"cars/{car}", servers, commands)
         path = d / "car.json5"
         path.write_text(
-            f"// car {car!r} (keys cars/{car}/**): connects to pilot server {server!r}, takes commands only from it\n"
-            + json.dumps(cfg, indent=2)
-            + "\n"
+            f"// car {car!r} (keys cars/{car}/**): connects to pilot server {' and '.join(map(repr, servers))},"
+            " takes commands only from it\n" + json.dumps(cfg, indent=2) + "\n"
         )
         files.car_configs[car] = path
         files.car_dirs[car] = d
@@ -458,19 +533,49 @@ def make_fleet(
         path = d / f"{view}.json5"
         path.write_text(
             f"// fleet view {view!r}: reads every car through pilot server {server!r}, commands none\n"
-            + json.dumps(_connector(d, view, host, port, mode="client"), indent=2)
+            + json.dumps(_connector(d, view, endpoints, mode="client"), indent=2)
             + "\n"
         )
         files.view_configs[view] = path
     return files
 
 
-def _connector(cert_dir: Path, cn: str, host: str, port: int, mode: str = "peer") -> dict:
+def _bracket(host: str) -> str:
+    """An address as an endpoint writes it (an IPv6 address in brackets)."""
+    return host if ":" not in host else f"[{host}]"
+
+
+def _server_config(cert_dir: Path, cn: str, listen: str, acl: dict, dial: str | None = None) -> dict:
+    """A pilot server's config: a router listening on mutual TLS with its rules; a server of a pair also dials
+    the other (both do, so whichever starts second reaches the first at once) with a short lease."""
+    cfg: dict = {
+        "mode": "router",  # it forwards each car's keys between that car, itself and the fleet views
+        "listen": {"endpoints": [listen]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": {"tls": _tls(cert_dir, cn, listen_side=True)}},
+        "access_control": acl,
+    }
+    if dial is not None:
+        cfg["connect"] = {
+            "endpoints": [dial],
+            "exit_on_failure": False,
+            "retry": {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2},
+        }
+        cfg["transport"]["link"]["tx"] = {"lease": PAIR_LEASE_MS, "keep_alive": 4}
+    return cfg
+
+
+def _connector(
+    cert_dir: Path, cn: str, endpoints: str | Sequence[str], port: int | None = None, mode: str = "peer"
+) -> dict:
+    if isinstance(endpoints, str):  # a host and a port
+        endpoints = [f"tls/{endpoints}:{port}"]
     return {
         "mode": mode,
         "listen": {"endpoints": []},  # reachable only through the connection it opens
         "connect": {
-            "endpoints": [f"tls/{host}:{port}"],
+            "endpoints": list(endpoints),
             "exit_on_failure": False,  # start before the car, keep retrying while it is away
             "retry": {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2},
         },

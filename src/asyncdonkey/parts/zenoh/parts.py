@@ -280,6 +280,11 @@ class _Held:
     value: Any
     origin: float
     fresh: bool  # not yet taken by run()
+    source: int = 0  # the sender's source (:mod:`.codec`'s attachment)
+
+
+#: two senders' samples whose origins are this close answer the same frame (:class:`ZenohSubscriber`)
+SAME_FRAME_S = 0.010
 
 
 class ZenohSubscriber:
@@ -307,6 +312,13 @@ class ZenohSubscriber:
         contracts: the channel contracts values are checked against (default: the car's, given by
             ``Vehicle.add`` through :meth:`use_contracts`; before that, or outside a vehicle,
             :class:`asyncdonkey.contracts.Contracts` defaults). Given here, they are kept.
+        same_frame_s: a sample from *another sender* than the held value's whose origin is not newer than the
+            held one's by more than this answers the same frame (or an older one), as two pilot servers of a
+            pair both answer a frame during a split (:mod:`.standby`): it is not stored, counted in
+            ``duplicates``. So the first answer of a frame is kept, and a second one never makes the command look
+            younger (or older) than the first made it. 10 ms: far above two servers' differences in estimating
+            the same frame's origin, below half the period of any camera up to 50 Hz. One sender's own samples
+            are never judged by it.
 
     A subscriber that takes any of the car's command channels (``pairing.COMMAND_CHANNELS``) refuses to start
     on a session that others can publish to (:meth:`.ZenohLink.guard_commands`): :class:`.ZenohConfigError`.
@@ -318,7 +330,8 @@ class ZenohSubscriber:
     sender, a resync after a jump), ``implausible`` (ages outside ``[0, max_age_s]``, sequence number 0, jumps
     not yet confirmed), ``unconfirmed`` (the first sample of a new sender, held back until its next one),
     ``unexpected`` (keys not configured, or samples without our attachment), ``refused`` (values not stored,
-    per channel and reason, see :attr:`refused`), of which ``malformed`` (payloads that did not decode).
+    per channel and reason, see :attr:`refused`), of which ``malformed`` (payloads that did not decode),
+    ``duplicates`` (another sender's answer to a frame already answered, see ``same_frame_s``).
     """
 
     def __init__(
@@ -334,11 +347,15 @@ class ZenohSubscriber:
         contracts: Contracts | None = None,
         max_age_s: float = MAX_AGE_S,
         silent_after_s: float = 5.0,
+        same_frame_s: float = SAME_FRAME_S,
     ) -> None:
         zenoh = require("zenoh", "zenoh", "a Zenoh link")
 
         if isinstance(channels, str) or not channels:
             raise ValueError(f"ZenohSubscriber: channels must be a non-empty list of names, got {channels!r}")
+        if not (math.isfinite(same_frame_s) and same_frame_s >= 0):
+            raise ValueError(f"ZenohSubscriber: same_frame_s must be a number of seconds >= 0, got {same_frame_s!r}")
+        self.same_frame_s = float(same_frame_s)
         self.group = _group_name(group, channels, "ZenohSubscriber")
         link.guard_commands([*channels, *([self.group] if self.group else [])], f"ZenohSubscriber {list(channels)}")
         self.link = link
@@ -377,6 +394,7 @@ class ZenohSubscriber:
         self.restarts = 0
         self.implausible = 0
         self.unconfirmed = 0
+        self.duplicates = 0
         self.on_arrival = on_arrival
         self._pushes: tuple[Callable[[Any, float], None], ...] = ()
         self.key_expr = key_expr or covering_key(list(self._index))
@@ -507,9 +525,12 @@ class ZenohSubscriber:
         origin = now - age_here
         with self._lock:
             held = self._held[i]
+            if held is not None and held.source != meta[2] and origin <= held.origin + self.same_frame_s:
+                self.duplicates += 1  # another sender's answer to a frame already answered (or an older one)
+                return
             if held is not None and held.fresh and not self._pushes:
                 self.dropped += 1
-            self._held[i] = _Held(value, origin, True)
+            self._held[i] = _Held(value, origin, True, meta[2])
             self.received += 1
             if age_here > self.late_after_s:
                 self.late += 1
@@ -668,6 +689,7 @@ class ZenohSubscriber:
                 "restarts": self.restarts,
                 "implausible": self.implausible,
                 "unconfirmed": self.unconfirmed,
+                "duplicates": self.duplicates,
             }
 
     def shutdown(self) -> None:

@@ -47,6 +47,7 @@ from .certs import log_certificate_problems
 from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
+from .standby import GRACE_S, AnswerRule, RoleWatch, ServerRole, role_from_config
 
 __all__ = ["PilotServer"]
 
@@ -57,22 +58,62 @@ COMMAND = ("pilot/angle", "pilot/throttle")
 
 
 class _Car:
-    """One car's channels on the server: its frames in, its commands out, on the shared session."""
+    """One car's channels on the server: its frames in, its commands out, on the shared session.
+
+    The commands' publisher lives as long as the server (one numbering for the car's sequence rules across
+    every takeover); the frames' subscriber only while the server answers (:meth:`listen`, :meth:`quiet`), so
+    a car sends its frames to the answering server only.
+    """
 
     def __init__(self, name: str, session: Any, prefix: str, ping_every_s: float, silent_after_s: float) -> None:
         self.name = name
-        self.link = ZenohLink(prefix, session=session)
-        self.frames = ZenohSubscriber(self.link, [CAMERA], ping_every_s=ping_every_s, silent_after_s=silent_after_s)
+        self.link = ZenohLink(prefix, session=session).acquire()  # held: the frames' subscriber comes and goes
+        self.ping_every_s = ping_every_s
+        self.silent_after_s = silent_after_s
+        self.frames: ZenohSubscriber | None = None
+        self._unsubscribe: Callable[[], None] | None = None
+        self._pings: asyncio.Future[None] | None = None
+        self.refused_before = 0  # frames refused by the subscribers of earlier turns
         self.commands = ZenohPublisher(self.link, list(COMMAND), group=PILOT_COMMAND)
         self.answered = 0
         self.wrong_frames = 0
 
+    def listen(self, push: Callable[[Any, float], None]) -> None:
+        """Subscribe to the car's frames (the car sends them here from now on) and measure its round trip."""
+        if self.frames is not None:
+            return
+        self.frames = ZenohSubscriber(
+            self.link, [CAMERA], ping_every_s=self.ping_every_s, silent_after_s=self.silent_after_s
+        )
+        self._unsubscribe = self.frames.subscribe(push)
+        self._pings = asyncio.ensure_future(self.frames.update())
+
+    def quiet(self) -> None:
+        """Withdraw the frames' subscription (the car stops sending frames here)."""
+        frames, self.frames = self.frames, None
+        if frames is None:
+            return
+        if self._pings is not None:
+            self._pings.cancel()
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+        self.refused_before += frames.counters()["refused"]
+        try:
+            frames.shutdown()
+        except Exception:  # pragma: no cover - closing a session that is going away
+            pass
+
+    def refused(self) -> int:
+        """Frames the channel contract refused, over every turn."""
+        return self.refused_before + (self.frames.counters()["refused"] if self.frames is not None else 0)
+
     def close(self) -> None:
-        for part in (self.frames, self.commands):
-            try:
-                part.shutdown()
-            except Exception:  # pragma: no cover - closing a session that is going away
-                pass
+        self.quiet()
+        try:
+            self.commands.shutdown()
+        except Exception:  # pragma: no cover - closing a session that is going away
+            pass
+        self.link.release()
 
 
 class PilotServer:
@@ -93,6 +134,11 @@ class PilotServer:
         silent_after_s: when a car's frames have not come for this long, log once why, as far as the server can
             tell (:meth:`.ZenohSubscriber.silence_report`); ``0``: never.
         insecure: open the session even though others could publish to it (see below). For an isolated bench.
+
+        role: this server's place in a primary/standby pair (:class:`.standby.ServerRole`): it then answers only
+            while the other does not (:mod:`.standby`). Default: the role its config says
+            (``zenoh-pair --fleet --standby``), or none (it answers from the start, alone).
+        grace_s: a server of a pair watches this long for the other's token before it decides to answer.
 
     **Frames are commands.** Whoever can publish ``cars/car1/cam/image_array`` to the server chooses the frames
     car1's command is computed from, and so steers car1. The server therefore refuses
@@ -119,6 +165,8 @@ class PilotServer:
         ping_every_s: float = 0.5,
         insecure: bool = False,
         silent_after_s: float = 5.0,
+        role: ServerRole | None = None,
+        grace_s: float = GRACE_S,
     ) -> None:
         names = list(dict.fromkeys(cars))
         if not names or isinstance(cars, str):
@@ -137,6 +185,16 @@ class PilotServer:
             self.config = link_config(config)
             session = self._open(self.config, insecure)
         self.session = session
+        #: this server's place in a primary/standby pair (:mod:`.standby`; ``None``: it answers alone)
+        self.role = role if role is not None else (role_from_config(self.config) if self.config is not None else None)
+        self.grace_s = grace_s
+        #: whether it answers the cars now; :attr:`rule` says when that changed (a pair only)
+        self.answering = False
+        self.rule: AnswerRule | None = None
+        #: commands computed but not sent because the server had stopped answering meanwhile
+        self.withheld = 0
+        self._watch: RoleWatch | None = None
+        self._event_loop: asyncio.AbstractEventLoop | None = None
         self.cars: dict[str, _Car] = {}
         try:
             for name in names:
@@ -195,29 +253,87 @@ class PilotServer:
         return push
 
     def _answer(self, frame: Frame, command: tuple[float, float], now: float) -> None:
-        """Send a car its command, aged by the frame it answers (its capture, carried across the network)."""
+        """Send a car its command, aged by the frame it answers (its capture, carried across the network); not
+        once this server has stopped answering (the other server of its pair answers from then on)."""
         car = self.cars[frame.car]
+        if not self.answering:
+            self.withheld += 1
+            return
         age = max(0.0, now - frame.origin)
+        if self.role is not None and car.commands.sent == 0:
+            # a car takes a new sender from its second sample (.sequence): a server taking over sends its first
+            # command twice (numbers 1 and 2, the same frame's), so the car takes it now, not a frame later
+            car.commands.run(command[0], command[1], age, age)
         car.commands.run(command[0], command[1], age, age)
         car.answered += 1
 
     # -- serving -------------------------------------------------------------------------------------------
     async def serve(self) -> None:
-        """Take frames, infer them in batches and answer each car, until :meth:`stop`."""
-        loop = asyncio.get_running_loop()
+        """Take frames, infer them in batches and answer each car, until :meth:`stop`. A server of a pair
+        answers only while its rule says so (:mod:`.standby`)."""
+        loop = self._event_loop = asyncio.get_running_loop()
         clock = get_clock()
-        unsubscribe = []
         for car in self.cars.values():
             car.link.now = clock.now
-            unsubscribe.append(car.frames.subscribe(self._push(car.name, loop)))
-        pings = [asyncio.ensure_future(car.frames.update()) for car in self.cars.values()]
+        if self.role is None:
+            self._set_answering(True)
+        else:
+            self.rule = AnswerRule(clock.now(), self.grace_s)
+            self._watch = RoleWatch(self.session, self.role, self._token_seen)
+            logger.info("pilot server %r: %s", self.role.name, self.role.describe())
+            loop.call_later(self.grace_s + 1e-3, self._judge)
         try:
             await self.loop.serve()
         finally:
-            for task in pings:
-                task.cancel()
-            for off in unsubscribe:
-                off()
+            self._set_answering(False)
+            if self._watch is not None:
+                self._watch.close()
+                self._watch = None
+
+    def _token_seen(self, present: bool) -> None:
+        """The other server's token appeared or went (Zenoh's thread): judged on the loop."""
+        loop = self._event_loop
+        if loop is None:
+            return
+        try:
+            loop.call_soon_threadsafe(self._judge, present)
+        except RuntimeError:  # the event loop is closed: the server is going away
+            pass
+
+    def _judge(self, present: bool | None = None) -> None:
+        """Apply the pair's rule now (on the loop), after a token event or when the grace ends."""
+        rule = self.rule
+        if rule is None or self._watch is None:
+            return
+        now = get_clock().now()
+        answer = rule.answering(now) if present is None else rule.token(present, now)
+        if answer != self.answering:
+            role = self.role
+            assert role is not None
+            other = f"{role.primary!r} is not alive" if role.is_standby else "its standby does not answer"
+            logger.warning(
+                "pilot server %r: %s",
+                role.name,
+                f"answering the cars ({other})" if answer else "stopped answering (the other server of its pair does)",
+            )
+            self._set_answering(answer)
+
+    def _set_answering(self, answering: bool) -> None:
+        """Start answering: the standby's token, then the frames' subscriptions. Stop: no answer from now on
+        (one computed meanwhile is withheld), then the subscriptions, then the token (:mod:`.standby`)."""
+        loop = self._event_loop
+        if answering and loop is not None:
+            if self._watch is not None:
+                self._watch.answering(True)
+            self.answering = True
+            for car in self.cars.values():
+                car.listen(self._push(car.name, loop))
+            return
+        self.answering = False
+        for car in self.cars.values():
+            car.quiet()
+        if self._watch is not None:
+            self._watch.answering(False)
 
     def stop(self) -> None:
         """End :meth:`serve` (from the event loop's thread)."""
@@ -244,7 +360,7 @@ class PilotServer:
         for name, car in self.cars.items():
             row = out.setdefault(name, {"frames": 0, "replaced": 0, "too_old": 0, "batched": 0})
             row["answered"] = car.answered
-            row["refused"] = car.frames.counters()["refused"]
+            row["refused"] = car.refused()
             row["wrong_frames"] = car.wrong_frames
         return out
 

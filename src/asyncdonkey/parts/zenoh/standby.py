@@ -1,0 +1,246 @@
+"""Which of two pilot servers answers the cars: a primary and its standby, decided from Zenoh liveliness tokens.
+
+A fleet paired with ``zenoh-pair --fleet --server gpu1 --standby gpu2`` has two servers for the same cars:
+every car connects to both and takes commands from either certificate. Exactly one of them should answer. The
+servers tell each other what they do with Zenoh's own liveliness tokens (a token exists while the session
+that declared it is connected; Zenoh withdraws it when that session closes, dies or misses its lease), on two
+keys named after the primary:
+
+* ``pilot-servers/<primary>/alive``: the primary declares it for as long as it runs;
+* ``pilot-servers/<primary>/standby-answering``: the standby declares it while it answers.
+
+**The rule** (:class:`AnswerRule`, the same for both; each watches the other's token):
+
+* the **standby answers while the primary's** ``alive`` **token is absent**;
+* the **primary answers while the standby's** ``standby-answering`` **token is absent**.
+
+Neither answers until it knows: a server starts *undecided*, watching its token, and decides after
+``grace_s`` (1 s) unless the watched token appeared meanwhile (the servers dial each other at start, and
+a token already declared reaches a newly connected session within a round trip). A server that answers
+declares its frame subscriptions (the cars send it frames only then: an idle standby costs no car any
+bandwidth); a server that stops answering first drops any answer still in its batch, then withdraws its
+subscriptions, then (the standby) its token.
+
+**Takeover** (the primary dies). A killed process's sockets are closed by its OS, so the standby sees the
+token go within a round trip; a machine that vanishes without closing them (power, cable) is noticed when its
+lease runs out (the server configs of ``zenoh-pair --standby`` set 1 s). The standby then declares its
+subscriptions, the cars' next frames reach it, and its answers go out; the car takes a new sender's numbering
+from its second sample (:mod:`.sequence`), so a takeover costs about the detection, one frame period and one
+model call. Measured in ``docs/scale-out.md``.
+
+**Hand-back** (the primary returns). The primary's ``alive`` token reaches the standby, which stops answering
+and withdraws ``standby-answering``; the primary, which has not answered yet (undecided, then waiting for that
+token to go), then declares its subscriptions and answers. No frame is answered twice: a frame reaches the
+primary only if the car sent it after learning of the primary's subscription, which follows the standby's
+withdrawal, which follows every answer the standby gave (and any answer it had not given yet is dropped).
+
+**A split** (both alive, but they cannot see each other: a broken link between the servers while each still
+reaches the cars). Each sees the other's token gone, so **both answer** every frame. The car takes the first
+answer of a frame and counts the second as a ``duplicate`` (:class:`.ZenohSubscriber`: a command from another
+sender whose origin is not newer than the held command's by more than ``same_frame_s``); either way a command's
+age stays the age of its own frame. When the split heals, the standby sees ``alive`` and stops; the primary
+sees ``standby-answering`` and stops too until the standby's token goes (a few ms): they converge to the
+primary alone, without a livelock (the standby's state depends only on the primary being alive).
+
+:class:`AnswerRule` is the decision alone (tested with fake token events on a controlled clock);
+:class:`RoleWatch` is the Zenoh side (tokens, the liveliness subscriber) feeding it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from ...errors import AsyncdonkeyError
+
+__all__ = ["GRACE_S", "AnswerRule", "RoleWatch", "ServerRole", "StandbyConfigError", "alive_key", "answering_key"]
+
+logger = logging.getLogger(__name__)
+
+#: how long a server watches before it decides, when the other's token has not appeared
+GRACE_S = 1.0
+#: the subjects' ids in the server configs of ``zenoh-pair --fleet --standby`` (how a server learns its role)
+PRIMARY_SUBJECT = "pair-primary"
+STANDBY_SUBJECT = "pair-standby"
+
+
+class StandbyConfigError(AsyncdonkeyError, ValueError):
+    """A primary/standby pair is configured so that it could not work (the message says what is missing)."""
+
+
+def alive_key(primary: str) -> str:
+    """The primary's liveliness token: declared for as long as it runs."""
+    return f"pilot-servers/{primary}/alive"
+
+
+def answering_key(primary: str) -> str:
+    """The standby's liveliness token: declared while it answers the cars."""
+    return f"pilot-servers/{primary}/standby-answering"
+
+
+def pair_keys(primary: str) -> str:
+    """The key expression covering both tokens of a pair (what the servers' access rules allow between them)."""
+    return f"pilot-servers/{primary}/**"
+
+
+@dataclass(frozen=True)
+class ServerRole:
+    """A server's place in a pair: ``name`` its own name; ``primary`` the primary it stands by for (a standby),
+    or ``None`` (a primary, whose standby is ``standby``)."""
+
+    name: str
+    primary: str | None = None
+    standby: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.primary is not None and self.primary == self.name:
+            raise StandbyConfigError(f"pilot server {self.name!r} cannot be the standby of itself")
+        if self.primary is not None and self.standby is not None:
+            raise StandbyConfigError(f"pilot server {self.name!r} is either a primary or a standby, not both")
+
+    @property
+    def is_standby(self) -> bool:
+        return self.primary is not None
+
+    @property
+    def pair(self) -> str:
+        """The primary's name: the pair's keys are named after it."""
+        return self.primary if self.primary is not None else self.name
+
+    @property
+    def watched(self) -> str:
+        """The other server's token this one watches: it answers while that token is absent."""
+        return alive_key(self.pair) if self.is_standby else answering_key(self.pair)
+
+    def describe(self) -> str:
+        if self.is_standby:
+            return f"standby of {self.primary!r}: answers while {self.primary!r} is not alive"
+        return f"primary{f' (standby {self.standby!r})' if self.standby else ''}: answers unless its standby does"
+
+
+def role_from_config(cfg: Any, name: str | None = None) -> ServerRole | None:
+    """The role written into a server config by ``zenoh-pair --fleet --standby`` (the subjects ``pair-primary``
+    or ``pair-standby`` of its access rules), or ``None`` for a server without a pair. ``name``: this server's
+    name (default: the common name of its certificate)."""
+    from .certs import config_value
+
+    subjects = config_value(cfg, "access_control/subjects") or []
+    by_id = {s.get("id"): s.get("cert_common_names") or [] for s in subjects if isinstance(s, dict)}
+    primary = (by_id.get(PRIMARY_SUBJECT) or [None])[0]
+    standby = (by_id.get(STANDBY_SUBJECT) or [None])[0]
+    if primary is None and standby is None:
+        return None
+    own = name or _own_name(cfg)
+    if own is None:
+        raise StandbyConfigError("pilot server: its config pairs it with another server, but names no certificate")
+    return ServerRole(own, primary=primary, standby=standby if primary is None else None)
+
+
+def _own_name(cfg: Any) -> str | None:
+    """The common name of the certificate a config names (``transport/link/tls/connect_certificate``)."""
+    from .certs import config_value
+
+    path = config_value(cfg, "transport/link/tls/connect_certificate")
+    if not isinstance(path, str):
+        return None
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+
+        with open(path, "rb") as f:
+            cert = x509.load_pem_x509_certificate(f.read())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        return str(names[0].value) if names else None
+    except Exception:  # unreadable: the session will say so when it opens
+        return None
+
+
+class AnswerRule:
+    """Whether a server answers now (module docstring): while the watched token is absent, once decided.
+
+    Events come from :class:`RoleWatch` (or a test): :meth:`token` for each appearance and withdrawal of the
+    watched token. A server is undecided for ``grace_s`` after ``start`` unless the token appeared: it answers
+    from then on while the token is absent. ``switches`` records every change of the answer, ``(time, answering)``.
+    """
+
+    def __init__(self, start: float, grace_s: float = GRACE_S) -> None:
+        if not (math.isfinite(grace_s) and grace_s >= 0):
+            raise ValueError(f"AnswerRule: grace_s must be a number of seconds >= 0, got {grace_s!r}")
+        self.start = float(start)
+        self.grace_s = float(grace_s)
+        self.present = False
+        self.decided = False
+        self.last = False
+        self.switches: list[tuple[float, bool]] = []
+
+    def token(self, present: bool, now: float) -> bool:
+        """The watched token appeared (``True``) or went (``False``); returns whether to answer now."""
+        self.present = bool(present)
+        if present:
+            self.decided = True  # seen: the other's state is known from now on
+        return self.answering(now)
+
+    def answering(self, now: float) -> bool:
+        """Whether to answer at ``now`` (records a switch when the answer changes)."""
+        if not self.decided and now - self.start >= self.grace_s:
+            self.decided = True
+        answer = self.decided and not self.present
+        if answer != self.last:
+            self.last = answer
+            self.switches.append((now, answer))
+        return answer
+
+
+class RoleWatch:
+    """The Zenoh side of a pair (module docstring): this server's own token, and the other's watched.
+
+    ``on_event(present)`` is called on Zenoh's thread for each appearance (``True``) or withdrawal of the
+    watched token; hand it to the event loop. :meth:`answering` declares or withdraws the standby's
+    ``standby-answering`` token (a primary declares nothing more).
+    """
+
+    def __init__(self, session: Any, role: ServerRole, on_event: Callable[[bool], None]) -> None:
+        import zenoh
+
+        self.session = session
+        self.role = role
+        self._lock = threading.Lock()
+        self._token: Any = None
+        self._answering: Any = None
+        self._kind_put = zenoh.SampleKind.PUT
+        self._on_event = on_event
+        liveliness = session.liveliness()
+        if not role.is_standby:
+            self._token = liveliness.declare_token(alive_key(role.pair))
+        self._sub = liveliness.declare_subscriber(role.watched, self._on_sample, history=True)
+
+    def _on_sample(self, sample: Any) -> None:
+        self._on_event(sample.kind == self._kind_put)
+
+    def answering(self, answering: bool) -> None:
+        """Declare (``True``) or withdraw this standby's ``standby-answering`` token; a primary: nothing."""
+        if not self.role.is_standby:
+            return
+        with self._lock:
+            if answering and self._answering is None:
+                self._answering = self.session.liveliness().declare_token(answering_key(self.role.pair))
+            elif not answering and self._answering is not None:
+                token, self._answering = self._answering, None
+                _undeclare(token)
+
+    def close(self) -> None:
+        for decl in (self._sub, self._answering, self._token):
+            if decl is not None:
+                _undeclare(decl)
+        self._answering = self._token = None
+
+
+def _undeclare(decl: Any) -> None:
+    try:
+        decl.undeclare()
+    except Exception:  # the session is closing
+        pass

@@ -91,7 +91,11 @@ def _configs(folder: Path, port: int) -> tuple[Path, Path]:
     return folder / "server.json5", folder / "car.json5"
 
 
-_FINAL = re.compile(r"final: (\d+) calls, batch mean ([\d.]+), model call p50 ([\d.]+) ms p99 ([\d.]+) ms")
+#: the server's final line (ServerFigures.line): batches, frames per batch, time per batch, model calls
+_FINAL = re.compile(
+    r"final: .*\| (\d+) batches(?: \(\d+ failed\))?, ([\d.]+) frames per batch, per batch p50 ([\d.]+) ms p99"
+    r" ([\d.]+) ms \| (\d+) model calls"
+)
 
 
 def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -> dict[str, Any]:
@@ -157,10 +161,11 @@ def run_fleet(n: int, model: Path, frames: Path, folder: Path, seconds: float) -
     }
     if final:
         out |= {
-            "calls": int(final[1]),
+            "batches": int(final[1]),
             "batch_mean": float(final[2]),
-            "model_call_p50_ms": float(final[3]),
+            "model_call_p50_ms": float(final[3]),  # per batch (the name the recorded results have)
             "model_call_p99_ms": float(final[4]),
+            "model_calls": int(final[5]),
         }
     out["driving"] = sum(1 for r in reports if r["commands"] > 0)
     out["saturated"] = bool(

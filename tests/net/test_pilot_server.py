@@ -85,7 +85,7 @@ async def test_frames_within_the_window_share_one_call_in_arrival_order():
     assert t2 == pytest.approx(t0 + 0.0115)  # its own window: opened at 6.5 ms
     # each answer carries its own frame's origin, sent when its call returned
     assert answers[:3] == [(t0 + 0.008, "b1", t0), (t0 + 0.008, "a1", t0 + 0.002), (t0 + 0.008, "c1", t0 + 0.003)]
-    assert loop.calls == 2 and list(loop.batch_sizes) == [3, 1]
+    assert loop.batches == 2 and loop.frames == 4 and list(loop.batch_sizes) == [3, 1]
 
 
 @pytest.mark.asyncio

@@ -185,6 +185,7 @@ def _add_top(sub: Any) -> None:
         description=(
             "Shows one line per car from the status each car publishes on cars/<car>/status (FleetStatus): its "
             "state (live; STALE when an age it reports is past --stale-ms, so it is probably holding its failsafe; "
+            "NO-CMD when no command has reached it yet: every pilot/ channel it reports holds no value; "
             "SILENT when no status came for three refresh periods), tick rate, sensing-to-actuation latency, tick "
             "lateness, drive mode, round trip and the ages of its channels. Connect with a view config of "
             "zenoh-pair (--config), or to an endpoint (--connect)."
@@ -345,18 +346,6 @@ async def _serve(server: Any, stats_every: float, seconds: float) -> None:
 
 
 def _stats_line(server: Any, final: bool = False) -> str:
-    import numpy as np
-
-    counters = server.counters()
-    sizes = list(server.batch_sizes)[-1000:]
-    infer = np.array(list(server.infer_s)[-1000:]) * 1e3
-    head = (
-        f"{time.strftime('%H:%M:%S')} {'final: ' if final else ''}{server.calls} calls, batch mean"
-        f" {np.mean(sizes) if sizes else 0:.1f}, model call p50 {np.percentile(infer, 50) if len(infer) else 0:.2f}"
-        f" ms p99 {np.percentile(infer, 99) if len(infer) else 0:.2f} ms"
-    )
-    cars = "; ".join(
-        f"{car} {c['answered']}/{c['frames']}" + (f" too_old {c['too_old']}" if c["too_old"] else "")
-        for car, c in counters.items()
-    )
-    return f"{head} | answered/frames: {cars}"
+    """The server's counters as one line, each figure named as what it counts (frames, batches, model calls:
+    :class:`asyncdonkey.parts.zenoh.server_figures.ServerFigures`)."""
+    return f"{time.strftime('%H:%M:%S')} {'final: ' if final else ''}{server.figures().line()}"

@@ -20,10 +20,12 @@ angle only), clipping and NaN checks. What it adds is the batch:
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import os
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -46,14 +48,27 @@ class BatchPilot:
         gpu: run an ONNX model on onnxruntime's CUDA provider when available (else a warning and the CPU).
         threads: the runtime's compute threads (default: physical cores).
 
+        timer: what the time of a model call is read from (seconds; default ``time.perf_counter``: a call is
+            real work in a worker thread, whatever clock the server's loop runs on).
+
     Attributes:
         batched: one call per batch (``False``: the model's batch is fixed at 1, one call per frame).
         provider: where an ONNX model runs (``CPUExecutionProvider`` or ``CUDAExecutionProvider``).
-        calls, frames: model calls made and frames inferred.
+        calls: model calls made (``session.run`` / the interpreter's ``invoke``): one per batch of up to
+            ``max_batch`` frames, or one per frame for a model whose batch is fixed at 1. Counted here, where
+            the calls are made, because only here is it known how many one ``infer`` took.
+        frames: frames inferred (over all calls; ``frames / calls`` is the mean frames per model call).
+        call_s: seconds per model call, the recent 10,000 (the frames' preprocessing and the runtime's call).
     """
 
     def __init__(
-        self, model_path: str | os.PathLike[str], *, max_batch: int = 32, gpu: bool = False, threads: int | None = None
+        self,
+        model_path: str | os.PathLike[str],
+        *,
+        max_batch: int = 32,
+        gpu: bool = False,
+        threads: int | None = None,
+        timer: Callable[[], float] = time.perf_counter,
     ) -> None:
         from ..pilot import load_pilot
 
@@ -68,6 +83,8 @@ class BatchPilot:
         self.batched = not isinstance(batch_dim, int)
         self.calls = 0
         self.frames = 0
+        self.call_s: collections.deque[float] = collections.deque(maxlen=10_000)
+        self._timer = timer
         self._session = getattr(self.pilot, "session", None)
         if gpu:
             self._use_gpu()
@@ -121,7 +138,9 @@ class BatchPilot:
         step = self.max_batch if self.batched else 1
         for i in range(0, len(images), step):
             chunk = images[i : i + step]
+            t0 = self._timer()
             raw = self._run(chunk)
+            self.call_s.append(self._timer() - t0)
             self.calls += 1
             self.frames += len(chunk)
             out.extend(self._commands(raw, len(chunk)))

@@ -159,6 +159,14 @@ class BatchLoop:
 
     While a batch is being inferred, frames keep arriving (:meth:`offer`); the next batch is taken as soon as
     the call returns if its window has closed by then.
+
+    Figures, each counting one thing (the batch is the loop's unit; how many *model calls* a batch took is the
+    model's to count, e.g. :attr:`.BatchPilot.calls`, since a model whose batch is fixed at 1 makes one per frame):
+
+    * :attr:`batches`: batches inferred and answered; :attr:`errors`: batches the model failed on.
+    * :attr:`frames`: frames in those batches (``frames / batches`` is the mean batch size, frames per batch).
+    * :attr:`batch_sizes`, :attr:`batch_s`: frames and seconds per batch (one ``infer`` from the batch being
+      taken to its commands), the recent 10,000.
     """
 
     def __init__(
@@ -171,8 +179,9 @@ class BatchLoop:
         self.infer = infer
         self.answer = answer
         self.batch_sizes: collections.deque[int] = collections.deque(maxlen=10_000)
-        self.infer_s: collections.deque[float] = collections.deque(maxlen=10_000)
-        self.calls = 0
+        self.batch_s: collections.deque[float] = collections.deque(maxlen=10_000)
+        self.batches = 0
+        self.frames = 0
         self.errors = 0
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._wake: asyncio.Event | None = None
@@ -227,9 +236,10 @@ class BatchLoop:
             logger.warning("pilot server: the model failed on a batch of %d (%s): no commands", len(batch), exc)
             return
         now = clock.now()
-        self.infer_s.append(now - t0)
+        self.batch_s.append(now - t0)
         self.batch_sizes.append(len(batch))
-        self.calls += 1
+        self.batches += 1
+        self.frames += len(batch)
         for frame, command in zip(batch, result, strict=True):
             if command is not None:
                 self.answer(frame, command, now)

@@ -24,9 +24,10 @@ server is slow, overloaded or gone stops by its own stale-command stop (``PWMThr
 fresh. Who may command which car is the job of the fleet configs of ``asyncdonkey zenoh-pair --fleet``
 (:mod:`.pairing`).
 
-Counters: :meth:`counters` per car (``frames``, ``replaced``, ``too_old``, ``batched``, ``answered``,
-``refused``, ``wrong_frames``) and :attr:`batch_sizes`, :attr:`infer_s` (the model's recent times per batch),
-:attr:`calls`.
+Counters: :meth:`counters` per car (``frames``, ``replaced``, ``too_old``, ``batched``, ``answered``, ``late``,
+``refused``, ``wrong_frames``); :meth:`figures` the server's totals, each named as what it counts (frames
+received, inferred, answered; batches and frames per batch; model calls, counted by the model; the time per
+batch and per call: :class:`.ServerFigures`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from .certs import log_certificate_problems
 from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
+from .server_figures import ServerFigures
 from .standby import GRACE_S, AnswerRule, RoleWatch, ServerRole, role_from_config
 
 __all__ = ["PilotServer"]
@@ -76,6 +78,7 @@ class _Car:
         self.refused_before = 0  # frames refused by the subscribers of earlier turns
         self.commands = ZenohPublisher(self.link, list(COMMAND), group=PILOT_COMMAND)
         self.answered = 0
+        self.late = 0  # commands sent when their frame was already older than the failsafe window
         self.wrong_frames = 0
 
     def listen(self, push: Callable[[Any, float], None]) -> None:
@@ -266,6 +269,8 @@ class PilotServer:
             car.commands.run(command[0], command[1], age, age)
         car.commands.run(command[0], command[1], age, age)
         car.answered += 1
+        if age > self.batcher.max_age_s:
+            car.late += 1
 
     # -- serving -------------------------------------------------------------------------------------------
     async def serve(self) -> None:
@@ -341,25 +346,39 @@ class PilotServer:
 
     @property
     def batch_sizes(self) -> collections.deque[int]:
-        """Frames per model call, recent calls."""
+        """Frames per batch, the recent batches (a batch is one or more model calls: :meth:`figures`)."""
         return self.loop.batch_sizes
 
     @property
-    def infer_s(self) -> collections.deque[float]:
-        """Seconds per model call (or per batch of calls, one per frame for a model of batch 1), recent."""
-        return self.loop.infer_s
+    def batch_s(self) -> collections.deque[float]:
+        """Seconds per batch, from its taking to its commands, the recent batches."""
+        return self.loop.batch_s
 
     @property
-    def calls(self) -> int:
-        return self.loop.calls
+    def batches(self) -> int:
+        """Batches inferred and answered."""
+        return self.loop.batches
+
+    @property
+    def model_calls(self) -> int | None:
+        """Calls of the model runtime, as the model counts them (:attr:`.BatchPilot.calls`); ``None`` for a
+        model that does not count them."""
+        calls = getattr(self.model, "calls", None)
+        return calls if isinstance(calls, int) else None
+
+    def figures(self) -> ServerFigures:
+        """The server's figures now, each named as what it counts (:class:`.ServerFigures`)."""
+        return ServerFigures.of(self.loop, self.model, self.counters(), withheld=getattr(self, "withheld", 0))
 
     def counters(self) -> dict[str, dict[str, int]]:
-        """Per car: the batcher's counters plus ``answered`` (commands sent), ``refused`` (frames the channel
-        contract refused) and ``wrong_frames`` (not the model's frame size)."""
+        """Per car: the batcher's counters plus ``answered`` (commands sent), ``late`` (of those, sent when their
+        frame was already older than ``max_age_s``: the car's failsafe holds regardless), ``refused`` (frames the
+        channel contract refused) and ``wrong_frames`` (not the model's frame size)."""
         out = self.batcher.counters()
         for name, car in self.cars.items():
             row = out.setdefault(name, {"frames": 0, "replaced": 0, "too_old": 0, "batched": 0})
             row["answered"] = car.answered
+            row["late"] = car.late
             row["refused"] = car.refused()
             row["wrong_frames"] = car.wrong_frames
         return out

@@ -13,15 +13,25 @@ Every ``every_s`` its background task publishes one JSON document (encoding ``ap
      "mode": "local", "records": 0, "rtt_ms": 0.3, "sent_unix": 1767000000.0}
 
 (``parts``: mean ms per part over the last ``window`` ticks; ``ages_ms``: age of each listed channel's value
-when the status was made, ``null`` if never written; ``overruns``: ticks over their period in that window;
+when the status was made, ``null`` when it holds no value (never written, or ``None``: a remote pilot's
+subscriber writes ``None`` until the first command arrives); ``overruns``: ticks over their period in that window;
 ``latency_*``: the sensing-to-actuation latency of the car's first actuator over that window, ``null``
 without one.)
 
 ``asyncdonkey top`` subscribes to ``cars/*/status`` and redraws one row per car, htop-style, sorted by name,
 latency or age (``--sort``). Each row's state says what to look at first: ``live``; ``STALE`` when one of the
 car's listed ages is past the stale limit (``--stale-ms``, default 250, the cars' failsafe window: that car is
-probably holding its failsafe); ``SILENT`` when its status has not come for three periods (the car, its link
-or its process is gone).
+probably holding its failsafe); ``NO-CMD`` when the car has no command (below); ``SILENT`` when its
+status has not come for three periods (the car, its link or its process is gone). Precedence: ``SILENT``, then
+``NO-CMD``, then ``STALE``.
+
+**No command** is read from the ages the car lists: its *command channels* are the listed ones under
+``pilot/`` (``pilot/angle``, ``pilot/throttle``: what a pilot, remote or on a server, writes). When the car lists
+at least one and every one is ``null`` (no value), no command has reached it yet (a remote pilot's subscriber
+holds its last command once it has one, so a car commanded once shows ``STALE`` when the commands stop, not
+this): it stands still on its own failsafe, and the usual causes are that it is not among the server's
+``--cars``, is paired with another CA, or cannot reach the server. A car that lists no command channel cannot
+be judged: it shows ``live`` (or ``STALE``) as before.
 """
 
 from __future__ import annotations
@@ -44,9 +54,24 @@ from ...extras import require
 from ...periodic import Periodic
 from .link import ZenohLink, zenoh_config
 
-__all__ = ["SORT_KEYS", "STATUS_KEY", "FleetStatus", "FleetWatcher", "car_state", "render_fleet", "top_main"]
+__all__ = [
+    "COMMAND_PREFIX",
+    "SORT_KEYS",
+    "STATES",
+    "STATUS_KEY",
+    "FleetStatus",
+    "FleetWatcher",
+    "car_state",
+    "never_commanded",
+    "render_fleet",
+    "top_main",
+]
 
 STATUS_KEY = "status"
+#: the listed ages whose channel starts with this are the car's command channels (module docstring)
+COMMAND_PREFIX = "pilot/"
+#: ``top``'s states, and the words its summary line counts them by
+STATES = {"live": "live", "NO-CMD": "no command", "STALE": "stale", "SILENT": "silent"}
 
 
 class FleetStatus:
@@ -93,7 +118,9 @@ class FleetStatus:
         ages = {}
         for ch in self.ages:
             a = mem.age(ch)
-            ages[ch] = round(a * 1e3, 1) if math.isfinite(a) else None
+            # no value, no age: a remote command's subscriber writes None, freshly dated, until its first sample
+            has_value = ch in mem and mem[ch] is not None
+            ages[ch] = round(a * 1e3, 1) if has_value and math.isfinite(a) else None
         rtt = self.link.rtt_s()
         latency: Any = next(iter(prof.latency.values()), None)
         lat = latency.recent(drop_last=False)[-w:] if latency is not None else ()
@@ -180,10 +207,24 @@ def _ms(x: Any, fmt: str = "{:.2f}") -> str:
 SORT_KEYS = ("name", "latency", "age")
 
 
+def never_commanded(doc: Mapping[str, Any]) -> bool:
+    """Whether the status says no command has reached the car: it lists ages of command channels
+    (:data:`COMMAND_PREFIX`) and every one is ``null`` (no value). ``False`` when it lists none (nothing to judge
+    by)."""
+    ages = doc.get("ages_ms")
+    if not isinstance(ages, Mapping):
+        return False
+    commands = [v for k, v in ages.items() if isinstance(k, str) and k.startswith(COMMAND_PREFIX)]
+    return bool(commands) and all(v is None for v in commands)
+
+
 def car_state(doc: Mapping[str, Any], seen_s: float, *, gone_after_s: float = 3.0, stale_ms: float = 250.0) -> str:
-    """``"SILENT"`` (no status for ``gone_after_s``), ``"STALE"`` (an age past ``stale_ms``) or ``"live"``."""
+    """``"SILENT"`` (no status for ``gone_after_s``), ``"NO-CMD"`` (no command yet: :func:`never_commanded`),
+    ``"STALE"`` (an age past ``stale_ms``) or ``"live"``."""
     if seen_s > gone_after_s:
         return "SILENT"
+    if never_commanded(doc):
+        return "NO-CMD"
     ages = doc.get("ages_ms") or {}
     if any(isinstance(v, int | float) and v > stale_ms for v in ages.values()):
         return "STALE"
@@ -227,11 +268,8 @@ def render_fleet(
     states = {
         name: car_state(doc, now - t, gone_after_s=gone_after_s, stale_ms=stale_ms) for name, (doc, t) in cars.items()
     }
-    counts = {s: sum(1 for v in states.values() if v == s) for s in ("live", "STALE", "SILENT")}
-    lines = [
-        f"asyncdonkey top - {len(cars)} car{'s' if len(cars) != 1 else ''} seen, {counts['live']} live,"
-        f" {counts['STALE']} stale, {counts['SILENT']} silent (sorted by {sort})"
-    ]
+    counts = ", ".join(f"{sum(1 for v in states.values() if v == s)} {word}" for s, word in STATES.items())
+    lines = [f"asyncdonkey top - {len(cars)} car{'s' if len(cars) != 1 else ''} seen, {counts} (sorted by {sort})"]
     head = (
         f"{'CAR':<16} {'STATE':<6} {'HZ':>6} {'LAT p99':>8} {'LATE p99':>9} {'OVR':>4} {'MODE':<11} {'REC':>6}"
         f" {'RTT ms':>7} {'SEEN':>5}  AGES ms"

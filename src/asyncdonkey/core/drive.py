@@ -43,6 +43,7 @@ from .partrun import PartRun
 from .pipeline import Reaction, ReentryGuard, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
+from .runtypes import TickStep
 from .shutdown import shutdown_drive
 
 if TYPE_CHECKING:
@@ -115,7 +116,7 @@ class Drive:
         #: the safety process, heartbeaten once a tick (None: none runs)
         self.safety_process: SafetyProcess | None = None
         # what the loop thread is doing (read by the watchdog thread): the run (or tick stand-in) being called
-        self.current: Any = None
+        self.current: TickStep | None = None
         self.part_started = math.inf
         self._awaiting: Any = None
         self._grace_cancel = False
@@ -498,7 +499,7 @@ class Drive:
             start = now()
         return start
 
-    def _cut_short(self, e: PartRun, exc: asyncio.CancelledError | PartInterrupted) -> float:
+    def _cut_short(self, e: TickStep, exc: asyncio.CancelledError | PartInterrupted) -> float:
         """Part ``e`` was cut short by a stop request's grace: cancelled at its await, or interrupted inside its
         sync call. The part failed (counted, an interruption logged), the stop goes on. Returns its end time.
 
@@ -598,7 +599,7 @@ class Drive:
         finally:
             ticks.close()
 
-    def _part_failed(self, e: PartRun, tick: int, exc: Exception, now: float) -> None:
+    def _part_failed(self, e: TickStep, tick: int, exc: Exception, now: float) -> None:
         e.errors += 1
         err = PartError(e.name, tick, f"{type(exc).__name__}: {exc}")
         if e.on_error == "stop":
@@ -608,7 +609,7 @@ class Drive:
         if more is not None:
             logger.error("%s; continuing (on_error='continue')%s", err, more, exc_info=exc)
 
-    def _report_block(self, e: PartRun, blocked: float, now: float) -> None:
+    def _report_block(self, e: TickStep, blocked: float, now: float) -> None:
         """A sync part held the loop thread past the failsafe window: name it (the watchdog covered the car)."""
         if self.longest_block is None or blocked > self.longest_block[0]:
             self.longest_block = (blocked, e.name)

@@ -19,36 +19,22 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from .runtypes import TickStep
+
 if TYPE_CHECKING:
+    from .pipeline import Pipeline, ReentryGuard
     from .plan import Entry
 
 __all__ = ["PartRun"]
 
 
-class PartRun:
-    """A part as one drive runs it: the per-run state, beside the plan fields the paths that call it read."""
+class PartRun(TickStep):
+    """A part as one drive runs it: the per-run state, beside the plan fields the paths that call it read.
 
-    __slots__ = (
-        "args",
-        "awaits",
-        "call",
-        "entry",
-        "errors",
-        "input_origin",
-        "inputs",
-        "is_sync_inline",
-        "kicks",
-        "latency",
-        "name",
-        "on_error",
-        "outputs",
-        "reentry_guard",
-        "run_condition",
-        "series",
-        "store",
-        "store_fixed",
-        "timeout",
-    )
+    A :class:`~asyncdonkey.core.runtypes.TickStep` (the fields the tick reads are declared there); its own slots
+    are what the pipelines, the reactions and the drive's background work read besides."""
+
+    __slots__ = ("entry", "input_origin", "inputs", "outputs", "reentry_guard", "series", "store_fixed")
 
     def __init__(self, entry: Entry) -> None:
         #: the plan this run follows (read-only here)
@@ -66,7 +52,7 @@ class PartRun:
         self.is_sync_inline = entry.is_sync_inline
         self.input_origin = entry.input_origin
         #: the output stores: the plan's, or (checked mode) wrapped in this drive's contract checks
-        self.store: Callable[[Any, Any, float], None] | None = entry.store
+        self.store = entry.store
         self.store_fixed: Callable[[Any, float, float], None] | None = entry.store_fixed
         # what this run keeps
         #: errors caught (``on_error="continue"``) or that stopped the drive, for ``DriveReport.part_errors``
@@ -76,6 +62,6 @@ class PartRun:
         #: an actuator the loop measures itself: ``latency(run end)`` records its sensing-to-actuation latency
         self.latency: Callable[[float], None] | None = None
         #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.core.pipeline``)
-        self.kicks: tuple[Any, ...] = ()
+        self.kicks: tuple[tuple[str, Pipeline], ...] = ()
         #: its :class:`~asyncdonkey.core.pipeline.ReentryGuard` when more than one path can be inside its call at once
-        self.reentry_guard: Any = None
+        self.reentry_guard: ReentryGuard | None = None

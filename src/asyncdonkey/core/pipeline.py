@@ -57,10 +57,11 @@ from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from ..errors import PartTimeoutError
+from .partrun import PartRun
 from .plan import with_timeout
+from .runtypes import TickStep
 
 if TYPE_CHECKING:
-    from .partrun import PartRun
     from .runtypes import PipelineHost
 
 __all__ = ["GuardedTick", "Pipeline", "ReentryGuard", "TickKicker", "build_pipelines", "needs_guard"]
@@ -254,41 +255,27 @@ def react_chain(runs: Sequence[PartRun], channels: set[str]) -> list[PartRun]:
     return chain
 
 
-class TickKicker:
+class TickKicker(TickStep):
     """What the tick calls in a pipelined part's place: start it if it starts on ticks (the tick skips it when its
-    run condition is false, from ``run_condition``, as any part)."""
+    run condition is false, from ``run_condition``, as any part). A :class:`~asyncdonkey.core.runtypes.TickStep`
+    with nothing of its own: its call only kicks, so it never awaits, stores or fails."""
 
-    __slots__ = (
-        "args",
-        "awaits",
-        "call",
-        "errors",
-        "inputs",
-        "is_sync_inline",
-        "kicks",
-        "latency",
-        "name",
-        "on_error",
-        "outputs",
-        "run_condition",
-        "store",
-    )
+    __slots__ = ()
 
     def __init__(self, pipeline: Pipeline) -> None:
         e = pipeline.run
         self.name = e.name
         self.run_condition = e.run_condition
-        self.outputs = e.outputs
-        self.inputs = ()
         self.args = _no_args
-        self.call: Callable[[], None] = pipeline.kick if pipeline.trigger is None else _nothing
+        self.call = pipeline.kick if pipeline.trigger is None else _nothing
         self.awaits = False
-        self.store = None
-        self.latency = None
-        self.kicks = ()
         self.is_sync_inline = False
+        self.store = None
+        self.kicks = ()
+        self.latency = None
         self.on_error = "continue"
         self.errors = 0
+        self.timeout = None
 
 
 def _no_args() -> tuple[()]:
@@ -511,32 +498,19 @@ class ReentryGuard:
         return {"waited": self.waited, "coalesced": self.coalesced}
 
 
-class GuardedTick:
+class GuardedTick(TickStep):
     """What the tick calls in a guarded part's place: one awaitable that enters the part (waiting for a call from
-    another path to end), reads its inputs then, calls it and stores its outputs (so the tick stores nothing)."""
+    another path to end), reads its inputs then, calls it and stores its outputs (so the tick stores nothing).
 
-    __slots__ = (
-        "args",
-        "awaits",
-        "call",
-        "inputs",
-        "is_sync_inline",
-        "kicks",
-        "name",
-        "on_error",
-        "outputs",
-        "run",
-        "run_condition",
-        "store",
-        "timeout",
-    )
+    A :class:`~asyncdonkey.core.runtypes.TickStep` whose ``errors`` and ``latency`` are its part's run's (the
+    latency recorder is attached to the run once the drive has started)."""
+
+    __slots__ = ("run",)
 
     def __init__(self, guard: ReentryGuard) -> None:
         e = self.run = guard.run
         self.name = e.name
         self.run_condition = e.run_condition
-        self.outputs = e.outputs
-        self.inputs = e.inputs
         self.on_error = e.on_error
         self.timeout = e.timeout
         self.args = _no_args
@@ -548,7 +522,11 @@ class GuardedTick:
 
     @property
     def latency(self) -> Callable[[float], None] | None:
-        return self.run.latency  # attached to the part's run once the drive has started
+        return self.run.latency
+
+    @latency.setter
+    def latency(self, recorder: Callable[[float], None] | None) -> None:
+        self.run.latency = recorder
 
     @property
     def errors(self) -> int:
@@ -559,7 +537,7 @@ class GuardedTick:
         self.run.errors = n
 
 
-def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline]]:
+def build_pipelines(drive: PipelineHost) -> tuple[tuple[TickStep, ...], list[Pipeline]]:
     """The tick's list (the drive's :class:`~asyncdonkey.core.partrun.PartRun` of each part, pipelined parts replaced by
     their kickers) and the drive's pipelines.
 
@@ -569,7 +547,7 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
     """
     entries = drive.runs
     pipelines: list[Pipeline] = []
-    tick: list[Any] = []
+    tick: list[TickStep] = []
     for e in entries:
         if not e.entry.beside.pipelined:
             tick.append(e)
@@ -598,7 +576,7 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[Any, ...], list[Pipeline
     return tuple(tick), pipelines
 
 
-def guard_entries(drive: PipelineHost, tick: list[Any], pipelines: list[Pipeline]) -> None:
+def guard_entries(drive: PipelineHost, tick: list[TickStep], pipelines: list[Pipeline]) -> None:
     """Give each part's run that needs one a fresh :class:`ReentryGuard` (every other ``None``), and put a
     :class:`GuardedTick` in a guarded part's place in the tick."""
     reacting = {id(r) for p in pipelines for r in p.react}
@@ -611,11 +589,11 @@ def guard_entries(drive: PipelineHost, tick: list[Any], pipelines: list[Pipeline
         if e.reentry_guard is not None:
             drive.reentry_guards.append(e.reentry_guard)
     for i, t in enumerate(tick):
-        if getattr(t, "reentry_guard", None) is not None:
+        if isinstance(t, PartRun) and t.reentry_guard is not None:
             tick[i] = GuardedTick(t.reentry_guard)
 
 
-def after_store(e: Any, origins: dict[str, float]) -> None:
+def after_store(e: TickStep, origins: dict[str, float]) -> None:
     """Tell the pipelines triggered by ``e``'s outputs that they were written (called when ``e.kicks``)."""
     for k, p in e.kicks:
         p.new_value(origins.get(k))

@@ -20,10 +20,60 @@ if TYPE_CHECKING:  # types only: each of these modules imports this one
     from ..safety.process import SafetyProcess
     from ..safety.watchdog import Watchdog
     from .partrun import PartRun
-    from .pipeline import Reaction, ReentryGuard
-    from .plan import Entry
+    from .pipeline import Pipeline, Reaction, ReentryGuard
+    from .plan import Entry, OnError
 
-__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "SafetyHost", "ShutdownScope", "Stoppable"]
+__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "SafetyHost", "ShutdownScope", "Stoppable", "TickStep"]
+
+
+class TickStep(Protocol):
+    """One step of the tick: what ``Drive._ticks`` reads of each object in its list, and nothing else.
+
+    A part's :class:`~asyncdonkey.core.partrun.PartRun` is a step; so are what the tick calls in a part's place
+    (``asyncdonkey.core.pipeline``): a pipelined part's ``TickKicker`` and a guarded part's ``GuardedTick``. Each
+    subclasses this protocol, so the step's fields, their types and their slots are declared once, here; each
+    class adds only the slots of its own job. The tick reads every field with one attribute lookup on a fast
+    local, whatever the step's class: what differs between steps is decided when the drive builds its list
+    (``build_pipelines``), never per tick.
+    """
+
+    __slots__ = (
+        "args",
+        "awaits",
+        "call",
+        "errors",
+        "is_sync_inline",
+        "kicks",
+        "latency",
+        "name",
+        "on_error",
+        "run_condition",
+        "store",
+        "timeout",
+    )
+
+    #: the part's name (reports, errors, the watchdog's and the signal handler's messages)
+    name: str
+    #: a channel: the step runs only on ticks where it is truthy (``None``: always)
+    run_condition: str | None
+    #: ``args()``: the call's arguments, read from Memory when the step runs
+    args: Callable[[], Sequence[Any]]
+    #: what the tick calls with them: the part's method (offloaded, bounded), or a stand-in's
+    call: Callable[..., Any]
+    #: the call returns an awaitable the drive task awaits; ``is_sync_inline``: it holds the loop thread instead
+    awaits: bool
+    is_sync_inline: bool
+    #: ``store(result, args, now)``: the outputs into Memory (``None``: the step stores nothing itself)
+    store: Callable[[Any, Any, float], None] | None
+    #: (channel, pipeline) pairs its outputs trigger, told after each store (``after_store``)
+    kicks: tuple[tuple[str, Pipeline], ...]
+    #: an actuator the loop measures itself: ``latency(end of its call)``
+    latency: Callable[[float], None] | None
+    #: what a failure does (``"stop"``, ``"continue"``) and how many there were this drive
+    on_error: OnError
+    errors: int
+    #: an awaited call's bound in seconds (``None``: none), which the safety process's heartbeat waits for
+    timeout: float | None
 
 
 class RunningCall(Protocol):

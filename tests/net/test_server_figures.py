@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from asyncdonkey.clock import get_clock
 from asyncdonkey.parts.zenoh.batch_infer import BatchPilot, dynamic_batch_onnx
@@ -29,6 +31,12 @@ FRAME = np.zeros((120, 160, 3), np.uint8)
 @pytest.fixture(scope="module")
 def batchable(tmp_path_factory) -> Path:
     return dynamic_batch_onnx(MODELS / "sim_pilot.onnx", tmp_path_factory.mktemp("model") / "sim_pilot_batch.onnx")
+
+
+@pytest.fixture(scope="module")
+def batchable_models(batchable) -> tuple[BatchPilot, BatchPilot]:
+    """The shipped pilot (batch fixed at 1) and its batchable copy, loaded once for every example."""
+    return BatchPilot(MODELS / "sim_pilot.onnx"), BatchPilot(batchable)
 
 
 def _ms_timer(step_s: float = 0.001) -> Callable[[], float]:
@@ -148,3 +156,20 @@ def test_late_and_too_old_are_shown_per_car_and_in_total():
     line = figures.line()
     assert line.startswith("frames 15 received, 12 inferred, 12 answered (3 late), 2 too old, 1 replaced, 2 withheld")
     assert line.endswith("answered/received per car: car1 7/10 late 3 too_old 2; car2 5/5")
+
+
+@settings(max_examples=25)
+@given(sizes=st.lists(st.integers(1, 6), min_size=1, max_size=5), max_batch=st.integers(1, 4))
+def test_a_models_calls_are_one_per_frame_at_batch_1_and_one_per_max_batch_chunk_when_batchable(
+    batchable_models, sizes, max_batch
+):
+    """Whatever the batches and ``max_batch``: a model of batch 1 makes one call per frame; a batchable one
+    makes ``ceil(size / max_batch)`` calls per batch; both count every frame once and time every call."""
+    for model in batchable_models:
+        model.max_batch = max_batch
+        calls0, frames0, timed0 = model.calls, model.frames, len(model.call_s)
+        for n in sizes:
+            assert len(model.infer([FRAME] * n)) == n
+        expected = sum(sizes) if not model.batched else sum(-(-n // max_batch) for n in sizes)
+        assert model.calls - calls0 == expected and model.frames - frames0 == sum(sizes)
+        assert len(model.call_s) - timed0 == expected

@@ -26,6 +26,7 @@ from .contracts import Contract, Contracts
 from .core.buildscope import note_vehicle
 from .core.drive import Drive
 from .core.drive_report import DriveReport, format_report
+from .core.drivestate import DriveSettings
 from .core.plan import AGE_SUFFIX, Entry, OnError, PartOptions, build_entry, make_offload
 from .core.profiler import Profiler
 from .core.signals import stop_on_signals
@@ -123,7 +124,7 @@ class Vehicle:
         drive = self._drive
         if drive is None:
             raise RuntimeError("Vehicle: an executor=True part was called outside a drive")
-        return drive.get_executor()
+        return drive.work.get_executor()
 
     @classmethod
     def from_donkeycar(cls, dk_vehicle: Any) -> Vehicle:
@@ -305,25 +306,20 @@ class Vehicle:
         self.mem.use_clock(clock.now)
         report = DriveReport(rate_hz=rate_hz)
         self.profiler = profiler = self._new_profiler()
-        drive = Drive(
-            tuple(self.parts),
-            self.mem,
-            clock,
-            loop,
-            profiler,
-            report,
+        settings = DriveSettings(
             stop_grace_s=stop_grace_s,
             block_report_s=self.block_report_s,
             precise=precise,
             want_safety_process=self.safety_process,
             exit_grace_s=self._signal_exit_grace,
         )
+        drive = Drive(tuple(self.parts), self.mem, clock, loop, profiler, report, settings)
         self._drive = drive
         if self._checked_for(checked):
             report.checked = True
             report.checked_parts = drive.check_outputs(self.contracts)
         if self._pending_stop is not None:
-            drive.stop_requested, drive.stop_reason = True, self._pending_stop
+            drive.stop_latch.requested, drive.stop_latch.reason = True, self._pending_stop
             self._pending_stop = None
         return drive
 

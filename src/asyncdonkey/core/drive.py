@@ -24,7 +24,6 @@ durations and overruns are worked out from the rows when a report asks.
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import functools
 import logging
 import math
@@ -36,11 +35,11 @@ from ..clock import SPIN_BUDGET, Clock, DeadlineWaiter, Schedule, TickGrid
 from ..clock import TICK_GRID as _TICK_GRID
 from ..errors import PartError, PartInterrupted
 from ..memory import Memory
-from ..ratelimit import LogThrottle
 from ..safety.attach import attach_actuators, detach_actuators, start_safety_process
 from .drive_report import format_report
+from .drivestate import BackgroundWork, DriveLog, DriveSettings, StopLatch, TickCounters
 from .partrun import PartRun
-from .pipeline import Reaction, ReentryGuard, after_store, build_pipelines
+from .pipeline import Reaction, after_store, build_pipelines
 from .plan import Background, Entry, checked_store
 from .profiler import Profiler, TableSeries, TickTable
 from .runtypes import TickStep
@@ -67,7 +66,13 @@ _TIME_EPS = 1e-9
 
 class Drive:
     """One run, from its start to its report: made and awaited (:meth:`run`) by ``Vehicle.run()``; not meant to be
-    built by users."""
+    built by users.
+
+    Its state is grouped by role (``asyncdonkey.core.drivestate``): :attr:`settings` (what the run asked for),
+    :attr:`counters` (the timing state the report is made of), :attr:`stop_latch` (the stop request and its grace),
+    :attr:`work` (what runs beside the ticks and shutdown takes down), :attr:`log` (rate-limited complaints about
+    parts). What other modules read of it directly (the runs, the clock, what the loop thread is doing, the safety
+    attachment) is named by the Protocols of ``asyncdonkey.core.runtypes``."""
 
     def __init__(
         self,
@@ -77,12 +82,7 @@ class Drive:
         loop: asyncio.AbstractEventLoop,
         profiler: Profiler,
         report: DriveReport,
-        *,
-        stop_grace_s: float,
-        block_report_s: float,
-        precise: bool = False,
-        want_safety_process: bool | None = None,
-        exit_grace_s: float | None = None,
+        settings: DriveSettings,
     ) -> None:
         #: the vehicle's parts as added (the plan: never written by the drive)
         self.entries = entries
@@ -93,55 +93,26 @@ class Drive:
         self.loop = loop
         self.profiler = profiler
         self.report = report
-        self.stop_grace_s = stop_grace_s
-        self.block_report_s = block_report_s
-        #: ``Vehicle.safety_process``: None starts the safety process when it can, True requires it, False never
-        self.want_safety_process = want_safety_process
-        #: the exit grace the safety process enforces while the car's signal handlers are installed (else None)
-        self.exit_grace_s = exit_grace_s
-        # stop latch
-        self.stop_requested = False
-        self.stop_reason = ""
-        self._wake: asyncio.Future[None] | None = None
-        #: waits for every tick's deadline (one OS timer per drive); closed by :meth:`run` when the ticks end
-        self.waiter = DeadlineWaiter(loop, precise=precise)
-        self._grace_handle: asyncio.TimerHandle | None = None
-        # background work owned by this run
-        self.tasks: list[tuple[Entry, asyncio.Task[Any]]] = []
-        self.threads: list[tuple[Entry, threading.Thread]] = []
-        self.executor: concurrent.futures.ThreadPoolExecutor | None = None
-        self.background_error: PartError | None = None
+        self.settings = settings
+        #: ticking: true from the start of :meth:`run` until its ticks end (Donkeycar's flag)
         self.on = False
-        self.watchdog: Watchdog | None = None
-        #: the safety process, heartbeaten once a tick (None: none runs)
-        self.safety_process: SafetyProcess | None = None
-        # what the loop thread is doing (read by the watchdog thread): the run (or tick stand-in) being called
+        # what the loop thread is doing (read by the watchdog thread): the step being called and since when
         self.current: TickStep | None = None
         self.part_started = math.inf
-        self._awaiting: Any = None
-        self._grace_cancel = False
-        self.task: asyncio.Task[Any] | None = None
-        # counters (attributes, so any ending can fill the report)
-        #: the first tick's deadline (None: at once), fixed by start_background()
-        self.t0: float | None = None
-        self.loops = 0
-        self.overruns = 0
-        self.skipped = 0
-        self.first_start = self.last_start = self.last_end = 0.0
-        self._errlog = LogThrottle(1.0)
-        self._blocklog = LogThrottle(1.0)
-        self._jitterlog = LogThrottle(1.0)
-        self.longest_block: tuple[float, str] | None = None
-        #: parts whose shutdown() or update() thread did not finish in time (left running as daemon threads)
-        self.abandoned: list[str] = []
-        # pipelined parts (asyncdonkey.core.pipeline): the tick calls their kickers in their place
-        self.push_sources: list[tuple[PartRun, Any, Reaction | None]] = []
-        self._unsubscribe: list[Any] = []
-        #: the parts more than one path can be inside at once, one call at a time (asyncdonkey.core.pipeline)
-        self.reentry_guards: list[ReentryGuard] = []
+        #: the safety attachment (``asyncdonkey.safety.attach``): the in-process watchdog and the safety process,
+        #: heartbeaten once a tick (None: none runs)
+        self.watchdog: Watchdog | None = None
+        self.safety_process: SafetyProcess | None = None
+        #: waits for every tick's deadline (one OS timer per drive); closed by :meth:`run` when the ticks end
+        self.waiter = DeadlineWaiter(loop, precise=settings.precise)
+        #: the pieces of the drive's state by role (``asyncdonkey.core.drivestate``)
+        self.counters = TickCounters()
+        self.stop_latch = StopLatch(loop, settings.stop_grace_s, self)
+        self.work = BackgroundWork()
+        self.log = DriveLog()
         #: what each tick calls, in order: the parts' runs, a pipelined part's kicker or a guarded part's GuardedTick
         #: in its place (``asyncdonkey.core.pipeline``)
-        self.tick_runs, self.pipelines = build_pipelines(self)
+        self.tick_runs, self.work.pipelines = build_pipelines(self)
         # the tick's timings: one row per tick (profiler.TickTable); a pipelined part's runs have a series
         self.table = table = TickTable(len(self.tick_runs), 1.0 / report.rate_hz, profiler.window)
         profiler.use_table(table)
@@ -152,6 +123,37 @@ class Drive:
                 r.series = profiler.series_for(r.name)
             else:
                 r.series = profiler.parts[r.name] = TableSeries(r.name, table, column[id(r)], skip_first=True)
+
+    # ------------------------------------------------------------------------------- read by others
+    @property
+    def stop_grace_s(self) -> float:
+        """After a stop request, how long an awaited part may go on (the watchdog and the signal handler read it)."""
+        return self.settings.stop_grace_s
+
+    @property
+    def loops(self) -> int:
+        """Ticks run so far (live, for parts that report on the loop while it runs)."""
+        return self.counters.loops
+
+    @property
+    def overruns(self) -> int:
+        """Ticks so far that took longer than a period."""
+        return self.counters.overruns
+
+    @property
+    def skipped(self) -> int:
+        """Deadlines skipped so far because the loop was more than a period behind."""
+        return self.counters.skipped
+
+    @property
+    def last_end(self) -> float:
+        """When the latest tick ended, on the runtime clock."""
+        return self.counters.last_end
+
+    @property
+    def t0(self) -> float | None:
+        """The first tick's deadline (None until the background work starts)."""
+        return self.counters.t0
 
     # ---------------------------------------------------------------------------------------- lifecycle
     async def run(
@@ -168,7 +170,10 @@ class Drive:
         self.on = True
         outcome: BaseException | None = None
         try:
-            self.safety_process = await start_safety_process(self, rate_hz, self.want_safety_process, self.exit_grace_s)
+            settings = self.settings
+            self.safety_process = await start_safety_process(
+                self, rate_hz, settings.want_safety_process, settings.exit_grace_s
+            )
             attach_actuators(
                 self, {r.name: latency_recorder(self.profiler, r.name) for r in self.runs if r.entry.actuator}
             )
@@ -184,9 +189,10 @@ class Drive:
             raise outcome
         if cancelled:
             raise asyncio.CancelledError()
-        if self.background_error is not None:
-            self.background_error.report = report
-            raise self.background_error
+        error = self.work.error
+        if error is not None:
+            error.report = report
+            raise error
         return report
 
     async def _end(self) -> bool:
@@ -196,21 +202,13 @@ class Drive:
             self.safety_process.ending()
         self.on = False
         self.waiter.close()
-        self.unsubscribe_push_sources()
+        self.work.unsubscribe_push_sources()
         try:
             return await shutdown_drive(self)
         finally:
             detach_actuators(self)
             self.fill_report()
             logger.info("%s", format_report(self.report, self.profiler))
-
-    # ----------------------------------------------------------------------------------------- executor
-    def get_executor(self) -> concurrent.futures.ThreadPoolExecutor:
-        if self.executor is None:
-            self.executor = concurrent.futures.ThreadPoolExecutor(
-                max_workers=4, thread_name_prefix="asyncdonkey-offload"
-            )
-        return self.executor
 
     # ------------------------------------------------------------------------------------ checked mode
     def check_outputs(self, contracts: Contracts) -> int:
@@ -232,42 +230,15 @@ class Drive:
 
     # ---------------------------------------------------------------------------------------- stopping
     def request_stop(self, reason: str = "stop()") -> None:
-        """Stop after the current tick. Safe from any thread and from a signal handler."""
-        if not self.stop_requested:
-            self.stop_requested = True
-            self.stop_reason = self.stop_reason or reason
-        loop = self.loop
-        if not loop.is_closed():
-            try:
-                loop.call_soon_threadsafe(self._on_stop_requested)
-            except RuntimeError:  # the loop closed in between
-                pass
-
-    def _on_stop_requested(self) -> None:
-        w = self._wake
-        if w is not None and not w.done():
-            w.set_result(None)
-        # an awaited part that does not return within the grace is cancelled, so a stop always ends the tick
-        if self._grace_handle is None and self.on:
-            self._grace_handle = self.loop.call_later(self.stop_grace_s, self._cancel_awaited_part)
-
-    def _cancel_awaited_part(self) -> None:
-        """Interrupt an awaited part that outlived the stop grace by cancelling the drive task at its await."""
-        task = self.task
-        if self._awaiting is not None and task is not None and not task.done():
-            name = self.current.name if self.current is not None else "?"
-            logger.error(
-                "part %r did not return within %.1f s of the stop request: cancelling it", name, self.stop_grace_s
-            )
-            self._grace_cancel = True
-            task.cancel()
+        """Stop after the current tick. Safe from any thread and from a signal handler (:class:`StopLatch`)."""
+        self.stop_latch.request(reason)
 
     # ------------------------------------------------------------------------------------- background
     def start_background(self, rate_hz: float) -> None:
         """Fix the first tick's deadline (:attr:`t0`) and start the parts' background work, whose ``update()``
         tasks see the drive's ticks as :func:`~asyncdonkey.clock.tick_grid` (a
         :class:`~asyncdonkey.poller.Poller` reads on them)."""
-        self.t0 = t0 = self.clock.now() + (0.0 if self.clock.is_virtual else START_MARGIN_S)
+        self.counters.t0 = t0 = self.clock.now() + (0.0 if self.clock.is_virtual else START_MARGIN_S)
         period = 1.0 / rate_hz
         token = _TICK_GRID.set(TickGrid(t0, period, self.waiter.max_spin_s(period)))
         try:
@@ -276,26 +247,27 @@ class Drive:
             _TICK_GRID.reset(token)
 
     def _start_background(self) -> None:
-        for p in self.pipelines:
+        work = self.work
+        for p in work.pipelines:
             p.task = self.loop.create_task(p.main(), name=f"pipelined:{p.name}")
-            self.tasks.append((p.entry, p.task))
-        for source, subscribe, reaction in self.push_sources:
+            work.tasks.append((p.entry, p.task))
+        for source, subscribe, reaction in work.push_sources:
             if reaction is not None:
                 reaction.task = self.loop.create_task(reaction.main(), name=f"react:{source.name}")
-                self.tasks.append((source.entry, reaction.task))
-            self._unsubscribe.append(
+                work.tasks.append((source.entry, reaction.task))
+            work.unsubscribe.append(
                 subscribe(lambda value, origin, e=source, r=reaction: self._push_threadsafe(e, value, origin, r))
             )
         for r in self.runs:
             e = r.entry
             if e.beside.background is Background.THREAD:
                 t = threading.Thread(target=self._thread_main, args=(r,), name=f"part:{e.name}", daemon=True)
-                self.threads.append((e, t))
+                work.threads.append((e, t))
                 t.start()
             elif e.beside.background is Background.TASK:
                 task = self.loop.create_task(e.part.update(), name=f"part:{e.name}")
                 task.add_done_callback(functools.partial(self._task_done, r))
-                self.tasks.append((e, task))
+                work.tasks.append((e, task))
 
     def _push_threadsafe(self, e: PartRun, value: Any, origin: float, reaction: Reaction | None) -> None:
         try:
@@ -320,12 +292,6 @@ class Drive:
         if reaction is not None:
             reaction.kick()
 
-    def unsubscribe_push_sources(self) -> None:
-        for unsubscribe in self._unsubscribe:
-            if callable(unsubscribe):
-                unsubscribe()
-        self._unsubscribe.clear()
-
     def _thread_main(self, e: PartRun) -> None:
         try:
             e.entry.part.update()
@@ -348,16 +314,16 @@ class Drive:
         :class:`PartError` that ``Vehicle.run()`` raises."""
         e.errors += 1
         if e.on_error == "continue" or not self.on:
-            more = self._errlog.ready(e.name, self.clock.now(), "more errors")
+            more = self.log.error_ready(e.name, self.clock.now())
             if more is not None:
                 logger.error("part %r: %s failed: %r; continuing%s", e.name, what, exc, more)
             return
         err = PartError(e.name, None, f"{type(exc).__name__}: {exc}")
         err.__cause__ = exc
-        if self.background_error is None:
-            self.background_error = err
+        if self.work.error is None:
+            self.work.error = err
         logger.error("%s; stopping the vehicle", err)
-        self.stop_reason = "error"
+        self.stop_latch.reason = "error"
         self.request_stop("error")
 
     # ------------------------------------------------------------------------------------------ ticks
@@ -381,13 +347,14 @@ class Drive:
         * otherwise this task resumes it: it waits for each deadline it yields and awaits each awaitable, sending
           the result back in (or throwing the exception in).
         """
-        self.task = asyncio.current_task()
+        latch = self.stop_latch
+        latch.task = asyncio.current_task()
         ticks = self._ticks(rate_hz, max_loop_count, duration, verbose, report_every)
         if any(e.awaits for e in self.tick_runs):
             await self._drive_from_task(ticks)
         else:
             await self._drive_from_timer(ticks, 1.0 / rate_hz)
-        self.stop_reason = self.stop_reason or "stop()"
+        latch.reason = latch.reason or "stop()"
 
     def _ticks(
         self, rate_hz: float, max_loop_count: int | None, duration: float | None, verbose: bool, report_every: int
@@ -400,25 +367,26 @@ class Drive:
         now, entries, table = self.clock.now, self.tick_runs, self.table
         d, origins = self.mem.d, self.mem.origins
         buf, window, ncol, commit = table.buf, table.window, table.ncol, table.commit
-        part_failed, report_block, block_report_s = self._part_failed, self._report_block, self.block_report_s
+        part_failed, report_block, block_report_s = self._part_failed, self.log.blocked, self.settings.block_report_s
+        counters, latch = self.counters, self.stop_latch
         sched, stop_at, end_at = self._schedule(rate_hz, max_loop_count, duration, end := now())
-        period, loops, nan = sched.period, self.loops, math.nan
+        period, loops, nan = sched.period, counters.loops, math.nan
         precise, beat = self.waiter.precise, self._start_heartbeat()  # precise: never on the virtual clock
-        while not self.stop_requested:
+        while not latch.requested:
             deadline = sched.deadline
             if loops >= stop_at or deadline >= end_at:
                 self._limit_reached(loops >= stop_at)
                 return
             if end < deadline:  # the last tick's end (or the start): early, so wait
                 yield deadline
-                if self.stop_requested:
+                if latch.requested:
                     return
             start = self._spin_until(deadline) if precise and end < deadline else now()  # precise: spin to it
-            self.last_start = t = start
+            counters.last_start = t = start
             if beat is not None:
                 beat(start)
             if loops == 0:
-                self.first_start = start
+                counters.first_start = start
             pos = (loops % window) * ncol
             buf[pos], buf[pos + 1] = deadline, start
             pos += 2
@@ -452,27 +420,28 @@ class Drive:
                 if e.latency is not None:
                     e.latency(t_end)
                 if t_end - t > block_report_s and e.is_sync_inline:
-                    report_block(e, t_end - t, t_end)
+                    report_block(e.name, t_end - t, t_end)
                 t = t_end
             self.current = None
             self.part_started = math.inf
-            self.last_end = end = now()
+            counters.last_end = end = now()
             buf[pos] = end
             commit()
-            self.loops = loops = loops + 1
+            counters.loops = loops = loops + 1
             if end - start - period > _TIME_EPS:
-                self.overruns += 1
+                counters.overruns += 1
             if verbose:
                 self._log_tick(end - start - period, end, loops, report_every)
-            self.skipped += sched.advance(end)  # more than a period behind: skipped and counted, never burst
+            counters.skipped += sched.advance(end)  # more than a period behind: skipped and counted, never burst
 
     def _schedule(
         self, rate_hz: float, max_loop_count: int | None, duration: float | None, now: float
     ) -> tuple[Schedule, float, float]:
         """The ticks' deadlines from the first one (:attr:`t0`, or ``now`` when none was fixed), and the limits
         :meth:`_ticks` checks before each tick: the tick count to stop at and the deadline to stop at."""
-        self.t0 = t0 = now if self.t0 is None else self.t0
-        self.first_start = self.last_start = self.last_end = t0
+        c = self.counters
+        c.t0 = t0 = now if c.t0 is None else c.t0
+        c.first_start = c.last_start = c.last_end = t0
         stop_at = math.inf if max_loop_count is None else max_loop_count
         end_at = math.inf if duration is None else t0 + duration
         return Schedule(rate_hz, t0), stop_at, end_at
@@ -486,7 +455,8 @@ class Drive:
 
     def _limit_reached(self, max_loops: bool) -> None:
         """The drive ends before its next tick: its tick count is done (``max_loops``) or its duration is up."""
-        self.stop_reason = self.stop_reason or ("max_loop_count" if max_loops else "duration")
+        latch = self.stop_latch
+        latch.reason = latch.reason or ("max_loop_count" if max_loops else "duration")
 
     def _spin_until(self, deadline: float) -> float:
         """Precise mode: the deadline timer called back early; spin the last stretch. Returns the tick's start.
@@ -505,11 +475,12 @@ class Drive:
 
         A cancellation that is not the grace's (our caller cancelled the drive) is raised on."""
         if isinstance(exc, asyncio.CancelledError):
-            if not self._grace_cancel:
+            latch = self.stop_latch
+            if not latch.grace_cancel:
                 raise exc
-            self._grace_cancel = False
-            if self.task is not None:
-                self.task.uncancel()
+            latch.grace_cancel = False
+            if latch.task is not None:
+                latch.task.uncancel()
         t_end = self.clock.now()
         e.errors += 1
         if isinstance(exc, PartInterrupted):
@@ -520,9 +491,7 @@ class Drive:
         """``verbose=True``, after each tick: a tick that took ``over`` seconds more than a period is warned of
         (rate-limited), and every ``report_every`` ticks the profiler's table is logged."""
         if over > _TIME_EPS:
-            more = self._jitterlog.ready("jitter", end)
-            if more is not None:
-                logger.warning("jitter violation in vehicle loop with %.0f ms overrun%s", over * 1e3, more)
+            self.log.overrun(over, end)
         if report_every and loops % report_every == 0:
             logger.info("%s", self.profiler.table())
 
@@ -533,7 +502,7 @@ class Drive:
         dropped), the last tick completes it, and an exception out of a tick (a part failing with
         ``on_error="stop"``) is set on it and raised here.
         """
-        done = self._wake = self.loop.create_future()
+        done = self.stop_latch.wake = self.loop.create_future()
         resume = ticks.send
 
         def on_deadline() -> float | None:
@@ -569,16 +538,17 @@ class Drive:
         now = self.clock.now
         waiter = self.waiter
         safety = self.safety_process
+        latch = self.stop_latch
         send, throw = ticks.send, ticks.throw
         try:
             step = send(None)
             while True:
                 if step.__class__ is float:
                     if now() < step:
-                        wake = self._wake
+                        wake = latch.wake
                         if wake is None:  # one per drive: a stop request completes it, and then the drive ends
-                            self._wake = wake = loop.create_future()
-                        if not self.stop_requested:
+                            latch.wake = wake = loop.create_future()
+                        if not latch.requested:
                             await waiter.wait_until(step, wake)
                     step = send(None)
                     continue
@@ -586,13 +556,13 @@ class Drive:
                     if safety is not None:  # the loop is free while the part awaits: only its timeout bounds it
                         timeout = self.current.timeout if self.current is not None else None
                         safety.beat(math.inf if timeout is None else self.part_started + timeout)
-                    self._awaiting = step
+                    latch.awaiting = step
                     result = await step
                 except BaseException as exc:
-                    self._awaiting = None
+                    latch.awaiting = None
                     step = throw(exc)
                 else:
-                    self._awaiting = None
+                    latch.awaiting = None
                     step = send(result)
         except StopIteration:
             return
@@ -603,38 +573,24 @@ class Drive:
         e.errors += 1
         err = PartError(e.name, tick, f"{type(exc).__name__}: {exc}")
         if e.on_error == "stop":
-            self.stop_reason = "error"
+            self.stop_latch.reason = "error"
             raise err from exc
-        more = self._errlog.ready(e.name, now, "more errors")
+        more = self.log.error_ready(e.name, now)
         if more is not None:
             logger.error("%s; continuing (on_error='continue')%s", err, more, exc_info=exc)
 
-    def _report_block(self, e: TickStep, blocked: float, now: float) -> None:
-        """A sync part held the loop thread past the failsafe window: name it (the watchdog covered the car)."""
-        if self.longest_block is None or blocked > self.longest_block[0]:
-            self.longest_block = (blocked, e.name)
-        more = self._blocklog.ready(e.name, now)
-        if more is not None:
-            logger.warning(
-                "loop blocked %s ms by part %r (a sync run() on the loop thread; add it with executor=True if it "
-                "can block)%s",
-                f"{blocked * 1e3:,.0f}",
-                e.name,
-                more,
-            )
-
     # ----------------------------------------------------------------------------------------- report
     def fill_report(self) -> None:
-        r = self.report
-        r.loops = self.loops
-        r.overruns = self.overruns
-        r.skipped_deadlines = self.skipped
+        r, c, work = self.report, self.counters, self.work
+        r.loops = c.loops
+        r.overruns = c.overruns
+        r.skipped_deadlines = c.skipped
         # from the first deadline, not the first start: a late first tick must not make the rate look higher
         # than asked (docs of DriveReport.achieved_hz)
-        t0 = self.first_start if self.t0 is None else min(self.t0, self.first_start)
-        r.elapsed_s = (self.last_end - t0) if self.loops else 0.0
-        span = self.last_start - t0
-        r.achieved_hz = (self.loops - 1) / span if self.loops > 1 and span > 0 else 0.0
+        t0 = c.first_start if c.t0 is None else min(c.t0, c.first_start)
+        r.elapsed_s = (c.last_end - t0) if c.loops else 0.0
+        span = c.last_start - t0
+        r.achieved_hz = (c.loops - 1) / span if c.loops > 1 and span > 0 else 0.0
         stats = self.profiler.as_dict()
         r.parts = stats["parts"]
         r.lateness_ms = stats["loop"]["lateness"] or {}
@@ -650,13 +606,14 @@ class Drive:
                 r.unsafe_ms[e.name] = unsafe.as_dict()
         if self.safety_process is not None:
             r.safety_process = self.safety_process.summary
-        if self.longest_block is not None:
-            r.longest_block_ms = (self.longest_block[0] * 1e3, self.longest_block[1])
-        r.shutdown_abandoned = list(self.abandoned)
-        r.pipelined = {p.name: p.stats(r.elapsed_s) for p in self.pipelines}
-        r.reentries_avoided = {g.name: g.stats() for g in self.reentry_guards}
-        r.pushed = {e.name: reaction.stats() for e, _sub, reaction in self.push_sources if reaction is not None}
-        r.stop_reason = r.stop_reason or self.stop_reason or "stop()"
+        longest = self.log.longest_block
+        if longest is not None:
+            r.longest_block_ms = (longest[0] * 1e3, longest[1])
+        r.shutdown_abandoned = list(work.abandoned)
+        r.pipelined = {p.name: p.stats(r.elapsed_s) for p in work.pipelines}
+        r.reentries_avoided = {g.name: g.stats() for g in work.reentry_guards}
+        r.pushed = {e.name: reaction.stats() for e, _sub, reaction in work.push_sources if reaction is not None}
+        r.stop_reason = r.stop_reason or self.stop_latch.reason or "stop()"
         if self.waiter.precise:  # the window as armed: at most its budget of the period
             window = self.waiter.spin_window_s
             r.spin_window_ms = (min(window, SPIN_BUDGET / r.rate_hz) if r.rate_hz > 0 else window) * 1e3

@@ -456,7 +456,7 @@ class ReentryGuard:
         A caller that stops waiting (a timeout, a cancellation) does not stop the thread: the part is let go when
         the thread returns, or at once if the call had not started (it then never will).
         """
-        fn, loop, executor = self.run.entry.fn, self._loop, drive.get_executor
+        fn, loop, executor = self.run.entry.fn, self._loop, drive.work.get_executor
         lock = threading.Lock()
 
         def claimed(state: list[str], args: tuple[Any, ...]) -> Any:
@@ -571,7 +571,7 @@ def build_pipelines(drive: PipelineHost) -> tuple[tuple[TickStep, ...], list[Pip
         # react=True parts they feed at once (a camera frame, a command from the network)
         chain = react_chain(entries, set(e.outputs))
         if fed or chain:
-            drive.push_sources.append((e, sub, Reaction(drive, chain) if chain else None))
+            drive.work.push_sources.append((e, sub, Reaction(drive, chain) if chain else None))
     guard_entries(drive, tick, pipelines)
     return tuple(tick), pipelines
 
@@ -581,13 +581,14 @@ def guard_entries(drive: PipelineHost, tick: list[TickStep], pipelines: list[Pip
     :class:`GuardedTick` in a guarded part's place in the tick."""
     reacting = {id(r) for p in pipelines for r in p.react}
     reacting.update(
-        id(r) for _e, _sub, reaction in drive.push_sources if reaction is not None for r in reaction.entries
+        id(r) for _e, _sub, reaction in drive.work.push_sources if reaction is not None for r in reaction.entries
     )
-    drive.reentry_guards = []
+    guards = drive.work.reentry_guards
+    guards.clear()
     for e in drive.runs:
         e.reentry_guard = ReentryGuard(drive, e) if needs_guard(e, reacting) else None
         if e.reentry_guard is not None:
-            drive.reentry_guards.append(e.reentry_guard)
+            guards.append(e.reentry_guard)
     for i, t in enumerate(tick):
         if isinstance(t, PartRun) and t.reentry_guard is not None:
             tick[i] = GuardedTick(t.reentry_guard)

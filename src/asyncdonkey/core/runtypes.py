@@ -9,8 +9,6 @@ and the core became one circle of modules. Each now names only what it reads, he
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
-import threading
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -19,8 +17,9 @@ if TYPE_CHECKING:  # types only: each of these modules imports this one
     from ..memory import Memory
     from ..safety.process import SafetyProcess
     from ..safety.watchdog import Watchdog
+    from .drivestate import BackgroundWork
     from .partrun import PartRun
-    from .pipeline import Pipeline, Reaction, ReentryGuard
+    from .pipeline import Pipeline
     from .plan import Entry, OnError
 
 __all__ = ["LoopActivity", "PipelineHost", "RunningCall", "SafetyHost", "ShutdownScope", "Stoppable", "TickStep"]
@@ -90,8 +89,12 @@ class RunningCall(Protocol):
 class LoopActivity(Protocol):
     """What the loop thread is doing, read from other threads (the watchdog, the signal handler).
 
-    ``current`` is the entry running now (``None`` between parts), ``part_started`` when it started on the
-    runtime clock (``inf`` between parts). Read-only here: only the loop thread writes them."""
+    ``current`` is the step running now (``None`` between parts), ``part_started`` when it started on the
+    runtime clock (``inf`` between parts), ``on`` whether the drive ticks. Read-only here: only the loop thread
+    writes them."""
+
+    @property
+    def on(self) -> bool: ...
 
     @property
     def current(self) -> RunningCall | None: ...
@@ -116,7 +119,8 @@ class Stoppable(Protocol):
 
 
 class ShutdownScope(Protocol):
-    """What shutdown takes down: the entries, the background work the drive owns, its watchdog."""
+    """What shutdown takes down: the entries, the background work the drive owns (its tasks, threads and worker
+    pool; the parts abandoned are noted there), its watchdog."""
 
     @property
     def entries(self) -> Sequence[Entry]: ...
@@ -125,19 +129,10 @@ class ShutdownScope(Protocol):
     def loop(self) -> asyncio.AbstractEventLoop: ...
 
     @property
-    def tasks(self) -> Sequence[tuple[Entry, asyncio.Task[Any]]]: ...
-
-    @property
-    def threads(self) -> Sequence[tuple[Entry, threading.Thread]]: ...
-
-    #: shut down and dropped (set to ``None``) by shutdown
-    executor: concurrent.futures.ThreadPoolExecutor | None
+    def work(self) -> BackgroundWork: ...
 
     @property
     def watchdog(self) -> Watchdog | None: ...
-
-    @property
-    def abandoned(self) -> list[str]: ...
 
 
 class PipelineHost(Protocol):
@@ -159,13 +154,10 @@ class PipelineHost(Protocol):
     @property
     def on(self) -> bool: ...
 
-    #: set by the pipelines' wiring (``guard_entries``)
-    reentry_guards: list[ReentryGuard]
-
+    #: the work beside the ticks: the pipelines' wiring fills its push sources and re-entry guards, a guarded
+    #: executor part's calls use its worker pool
     @property
-    def push_sources(self) -> list[tuple[PartRun, Callable[..., Any], Reaction | None]]: ...
-
-    def get_executor(self) -> concurrent.futures.ThreadPoolExecutor: ...
+    def work(self) -> BackgroundWork: ...
 
     def background_failed(self, e: PartRun, exc: BaseException, what: str = ...) -> None: ...
 

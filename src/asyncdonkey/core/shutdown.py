@@ -122,16 +122,17 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
     """Shut every part of ``drive`` down exactly once (module docstring). Returns True if cancelled meanwhile."""
     loop = drive.loop
     entries = [e for e in drive.entries if e.shutdown.fn is not None]
-    abandoned = drive.abandoned
+    work = drive.work
+    abandoned = work.abandoned
     cancelled = await _phase([e for e in entries if e.actuator], loop, abandoned, finish_on_cancel=True)
     if drive.watchdog is not None:
         drive.watchdog.stop()
     if not cancelled:
         cancelled = await _phase([e for e in entries if not e.actuator], loop, abandoned, finish_on_cancel=False)
-    for _, task in drive.tasks:
+    for _, task in work.tasks:
         task.cancel()
     if not cancelled:
-        for e, task in drive.tasks:
+        for e, task in work.tasks:
             try:
                 await asyncio.wait_for(task, e.shutdown.timeout)
             except asyncio.CancelledError:
@@ -140,7 +141,7 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
                     break
             except Exception:
                 pass  # already reported by the task's done callback
-        for e, t in drive.threads:
+        for e, t in work.threads:
             if cancelled:
                 break
             try:
@@ -154,7 +155,7 @@ async def shutdown_drive(drive: ShutdownScope) -> bool:
                     e.name,
                     e.shutdown.timeout,
                 )
-    if drive.executor is not None:
-        drive.executor.shutdown(wait=False, cancel_futures=True)
-        drive.executor = None
+    if work.executor is not None:
+        work.executor.shutdown(wait=False, cancel_futures=True)
+        work.executor = None
     return cancelled

@@ -60,6 +60,21 @@ def _add_pair(sub: Any) -> None:
         help="--fleet: name or address the cars reach the server by (repeatable; the first is dialled). "
         "Default: localhost",
     )
+    pair.add_argument(
+        "--standby",
+        metavar="NAME",
+        help="--fleet: a standby pilot server for the same cars (its certificate CN): every car connects to both and"
+        " takes commands from either; the standby answers only while --server is not alive (Zenoh liveliness)",
+    )
+    pair.add_argument(
+        "--standby-host",
+        action="append",
+        dest="standby_hosts",
+        metavar="HOST",
+        help="--standby: name or address the cars and the server reach the standby by (repeatable; the first is"
+        " dialled). Default: localhost",
+    )
+    pair.add_argument("--standby-port", type=int, help="--standby: the standby's TLS port (default: --port)")
     pair.add_argument("--port", type=int, default=7447, help="the listening side's TLS port (default 7447)")
     pair.add_argument(
         "--listen-host", default="0.0.0.0", help="address the car (or the server) listens on (default 0.0.0.0)"
@@ -94,7 +109,14 @@ def _cmd_pair(args: argparse.Namespace) -> int:
         if args.fleet:
             return _pair_fleet(args, commands, make_fleet)
         single_only = [
-            o for o, v in (("--cars", args.cars), ("--server", args.server), ("--server-host", args.server_hosts)) if v
+            o
+            for o, v in (
+                ("--cars", args.cars),
+                ("--server", args.server),
+                ("--server-host", args.server_hosts),
+                ("--standby", args.standby),
+            )
+            if v
         ]
         if single_only:
             raise ValueError(f"{', '.join(single_only)} pair a fleet: add --fleet")
@@ -150,11 +172,16 @@ def _pair_fleet(args: argparse.Namespace, commands: Any, make_fleet: Any) -> int
     one_car = [o for o, v in (("--car", args.car), ("--pilot", args.pilot), ("--car-host", args.car_hosts)) if v]
     if one_car:
         raise ValueError(f"{', '.join(one_car)} pair one car; a fleet names --cars and --server")
+    if (args.standby_hosts or args.standby_port is not None) and not args.standby:
+        raise ValueError("--standby-host and --standby-port describe a standby server: name it with --standby NAME")
     files = make_fleet(
         args.out,
         cars=args.cars,
         server=args.server,
         server_hosts=args.server_hosts or ["localhost"],
+        standby=args.standby,
+        standby_hosts=args.standby_hosts or ["localhost"],
+        standby_port=args.standby_port,
         port=args.port,
         listen_host=args.listen_host,
         views=args.view,
@@ -164,6 +191,11 @@ def _pair_fleet(args: argparse.Namespace, commands: Any, make_fleet: Any) -> int
     if not args.server_hosts:
         print("defaults used (name it with --server-host): server host 'localhost'")
     print(f"server {args.server}: copy {files.server_dir}/ to the pilot server; its config: {files.server_config}")
+    if files.standby_config is not None:
+        print(
+            f"standby {args.standby}: copy {files.standby_dir}/ to the standby server; its config:"
+            f" {files.standby_config} (it answers while {args.server} is not alive)"
+        )
     for car, cfg in files.car_configs.items():
         print(f"car    {car}: copy {files.car_dirs[car]}/ to the car; its config: {cfg}")
     for view, cfg in files.view_configs.items():
@@ -278,6 +310,18 @@ def _add_pilot_server(sub: Any) -> None:
         " bench network only",
     )
     ps.add_argument(
+        "--standby-of",
+        metavar="PRIMARY",
+        help="run as the standby of pilot server PRIMARY: answer the cars only while PRIMARY's Zenoh liveliness"
+        " token is absent (default: the role the config of zenoh-pair --standby gives, or none: answer alone)",
+    )
+    ps.add_argument(
+        "--standby",
+        metavar="NAME",
+        help="run as a primary whose standby is NAME: answer unless NAME answers (at start, after a 1 s watch)",
+    )
+    ps.add_argument("--name", help="this server's name in a pair (default: its certificate's common name)")
+    ps.add_argument(
         "--stats-every", type=float, default=5.0, help="print a line of counters every S seconds (0: never)"
     )
     ps.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (0: until Ctrl-C)")
@@ -290,6 +334,7 @@ def _cmd_pilot_server(args: argparse.Namespace) -> int:
     from ..parts.zenoh.batch_infer import BatchPilot
     from ..parts.zenoh.link import ZenohConfigError, zenoh_config
     from ..parts.zenoh.pilot_server import PilotServer
+    from ..parts.zenoh.standby import role_for
 
     for name, value in (("--batch-window-ms", args.batch_window_ms), ("--max-age-ms", args.max_age_ms)):
         if not value >= 0 or (name == "--max-age-ms" and value == 0):
@@ -298,6 +343,7 @@ def _cmd_pilot_server(args: argparse.Namespace) -> int:
     try:
         model = BatchPilot(args.model, max_batch=args.max_batch, gpu=args.gpu, threads=args.threads)
         config = zenoh_config(args.config, mode=args.mode, connect=args.connect, listen=args.listen)
+        role = role_for(config, name=args.name, standby_of=args.standby_of, standby=args.standby)
         server = PilotServer(
             model,
             args.cars,
@@ -307,6 +353,7 @@ def _cmd_pilot_server(args: argparse.Namespace) -> int:
             max_batch=args.max_batch,
             prefix=args.prefix,
             insecure=args.insecure,
+            role=role,
         )
     except (PilotModelError, ZenohConfigError, ValueError, OSError) as exc:
         print(f"asyncdonkey pilot-server: error: {exc}", file=sys.stderr)
@@ -314,7 +361,7 @@ def _cmd_pilot_server(args: argparse.Namespace) -> int:
     how = f"batches of up to {args.max_batch}" if model.batched else "one call per frame (the model's batch is 1)"
     print(
         f"pilot server: {model.path.name} on {model.provider}, {how}, window {args.batch_window_ms:g} ms, serving"
-        f" {', '.join(args.cars)}",
+        f" {', '.join(args.cars)}" + (f"; {server.role.name}, {server.role.describe()}" if server.role else ""),
         flush=True,
     )
     try:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import inspect
 import logging
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -49,7 +50,7 @@ from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
 from .server_figures import ServerFigures
-from .standby import GRACE_S, AnswerRule, RoleWatch, ServerRole, role_from_config
+from .standby import GRACE_S, READY_S, AnswerRule, RoleWatch, ServerRole, role_from_config
 
 __all__ = ["PilotServer"]
 
@@ -137,11 +138,12 @@ class PilotServer:
         silent_after_s: when a car's frames have not come for this long, log once why, as far as the server can
             tell (:meth:`.ZenohSubscriber.silence_report`); ``0``: never.
         insecure: open the session even though others could publish to it (see below). For an isolated bench.
-
         role: this server's place in a primary/standby pair (:class:`.standby.ServerRole`): it then answers only
             while the other does not (:mod:`.standby`). Default: the role its config says
             (``zenoh-pair --fleet --standby``), or none (it answers from the start, alone).
         grace_s: a server of a pair watches this long for the other's token before it decides to answer.
+        ready_s: a primary of a pair declares its token (so its standby hands back) once every car's frames
+            reach it, or this long after it starts.
 
     **Frames are commands.** Whoever can publish ``cars/car1/cam/image_array`` to the server chooses the frames
     car1's command is computed from, and so steers car1. The server therefore refuses
@@ -170,6 +172,7 @@ class PilotServer:
         silent_after_s: float = 5.0,
         role: ServerRole | None = None,
         grace_s: float = GRACE_S,
+        ready_s: float = READY_S,
     ) -> None:
         names = list(dict.fromkeys(cars))
         if not names or isinstance(cars, str):
@@ -191,6 +194,8 @@ class PilotServer:
         #: this server's place in a primary/standby pair (:mod:`.standby`; ``None``: it answers alone)
         self.role = role if role is not None else (role_from_config(self.config) if self.config is not None else None)
         self.grace_s = grace_s
+        self.ready_s = ready_s
+        self._seen: set[str] = set()  # cars whose frames reached this server (a primary waits for them)
         #: whether it answers the cars now; :attr:`rule` says when that changed (a pair only)
         self.answering = False
         self.rule: AnswerRule | None = None
@@ -228,6 +233,12 @@ class PilotServer:
 
     # -- frames in (Zenoh's threads, handed to the loop) --------------------------------------------------
     def _offer(self, car: str, image: Any, origin: float) -> None:
+        if self.role is not None:
+            self._seen.add(car)
+            if not self.answering:  # a primary hears frames before it answers: none of them is answered
+                if self._watch is None and len(self._seen) == len(self.cars):
+                    self._watch_pair()
+                return
         shape = self.image_shape
         if shape is not None and (getattr(image, "shape", None) != shape or getattr(image, "dtype", None) != np.uint8):
             entry = self.cars[car]
@@ -283,17 +294,48 @@ class PilotServer:
         if self.role is None:
             self._set_answering(True)
         else:
-            self.rule = AnswerRule(clock.now(), self.grace_s)
-            self._watch = RoleWatch(self.session, self.role, self._token_seen)
+            await self._warm_up()  # before the other server learns of this one: its first answer is not late
             logger.info("pilot server %r: %s", self.role.name, self.role.describe())
-            loop.call_later(self.grace_s + 1e-3, self._judge)
+            if self.role.is_standby:
+                self._watch_pair()
+            else:  # a primary: the cars' frames first (they reconnect at their own pace), then its token
+                for car in self.cars.values():
+                    car.listen(self._push(car.name, loop))
+                loop.call_later(self.ready_s, self._watch_pair)
         try:
             await self.loop.serve()
         finally:
             self._set_answering(False)
+            for car in self.cars.values():
+                car.quiet()
             if self._watch is not None:
                 self._watch.close()
                 self._watch = None
+
+    def _watch_pair(self) -> None:
+        """Declare this server's token and watch the other's (:mod:`.standby`); a primary does so once every
+        car's frames reach it, or ``ready_s`` after its start, so that the standby hands back only cars it can
+        answer (a car whose link to it broke reconnects on its own schedule, up to 2 s)."""
+        if self._watch is not None or self.role is None or self._event_loop is None:
+            return
+        self.rule = AnswerRule(get_clock().now(), self.grace_s)
+        self._watch = RoleWatch(self.session, self.role, self._token_seen)
+        self._event_loop.call_later(self.grace_s + 1e-3, self._judge)
+
+    async def _warm_up(self) -> None:
+        """One model call on a blank frame, off the loop: a runtime's first call allocates and can take many
+        times a normal one, which a server taking over (or taking back) the cars would add to their gap."""
+        shape = self.image_shape
+        infer = getattr(self.model, "infer", self.model)
+        if shape is None:
+            return
+        try:
+            if inspect.iscoroutinefunction(infer):
+                await infer([np.zeros(shape, np.uint8)])
+            else:
+                await asyncio.get_running_loop().run_in_executor(None, infer, [np.zeros(shape, np.uint8)])
+        except Exception as exc:  # the batches will say so again
+            logger.warning("pilot server: the model failed on a blank frame at start (%s)", exc)
 
     def _token_seen(self, present: bool) -> None:
         """The other server's token appeared or went (Zenoh's thread): judged on the loop."""
@@ -335,8 +377,9 @@ class PilotServer:
                 car.listen(self._push(car.name, loop))
             return
         self.answering = False
-        for car in self.cars.values():
-            car.quiet()
+        if self.role is not None and self.role.is_standby:
+            for car in self.cars.values():
+                car.quiet()
         if self._watch is not None:
             self._watch.answering(False)
 

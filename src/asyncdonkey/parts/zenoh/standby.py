@@ -57,12 +57,23 @@ from typing import Any
 
 from ...errors import AsyncdonkeyError
 
-__all__ = ["GRACE_S", "AnswerRule", "RoleWatch", "ServerRole", "StandbyConfigError", "alive_key", "answering_key"]
+__all__ = [
+    "GRACE_S",
+    "READY_S",
+    "AnswerRule",
+    "RoleWatch",
+    "ServerRole",
+    "StandbyConfigError",
+    "alive_key",
+    "answering_key",
+]
 
 logger = logging.getLogger(__name__)
 
 #: how long a server watches before it decides, when the other's token has not appeared
 GRACE_S = 1.0
+#: the longest a starting primary waits for every car's frames before it declares its token
+READY_S = 3.0
 #: the subjects' ids in the server configs of ``zenoh-pair --fleet --standby`` (how a server learns its role)
 PRIMARY_SUBJECT = "pair-primary"
 STANDBY_SUBJECT = "pair-standby"
@@ -244,3 +255,39 @@ def _undeclare(decl: Any) -> None:
         decl.undeclare()
     except Exception:  # the session is closing
         pass
+
+
+def role_for(
+    cfg: Any, *, name: str | None = None, standby_of: str | None = None, standby: str | None = None
+) -> ServerRole | None:
+    """The role a server runs in (``asyncdonkey pilot-server``): ``standby_of`` (a standby of that primary) or
+    ``standby`` (a primary with that standby) when given, else what its config says (:func:`role_from_config`),
+    else ``None`` (alone). ``name``: this server's name (default: its certificate's common name).
+
+    Refused (:class:`StandbyConfigError`, one line): both given; a pair without a name; and a standby whose
+    session dials nobody, since it could never see its primary alive and would answer beside it.
+    """
+    from .certs import config_value
+
+    if standby_of and standby:
+        raise StandbyConfigError("a pilot server is the standby of another (--standby-of) or has one (--standby)")
+    if standby_of or standby:
+        own = name or _own_name(cfg)
+        if own is None:
+            raise StandbyConfigError(
+                "a pilot server of a pair needs a name, the other server watches its token by it: give --name"
+            )
+        role: ServerRole | None = ServerRole(own, primary=standby_of or None, standby=standby or None)
+    else:
+        role = role_from_config(cfg, name)
+    if role is not None and role.is_standby:
+        endpoints = config_value(cfg, "connect/endpoints") or []
+        if isinstance(endpoints, dict):
+            endpoints = endpoints.get("router", []) + endpoints.get("peer", [])
+        if not endpoints:
+            raise StandbyConfigError(
+                f"standby {role.name!r} of {role.primary!r} dials no other session, so it could never see"
+                f" {role.primary!r} alive and would answer beside it: give the primary's endpoint (--connect, or the"
+                " standby config of `asyncdonkey zenoh-pair --fleet --standby`)"
+            )
+    return role

@@ -59,6 +59,16 @@ def test_a_server_decides_after_its_grace_and_answers_while_the_watched_token_is
         AnswerRule(0.0, grace_s=-1)
 
 
+def test_a_query_decides_a_primary_at_once_and_a_standby_only_when_the_token_is_there():
+    primary = AnswerRule(start=0.0, grace_s=1.0)
+    assert primary.queried(False, 0.1, decides_absence=True)  # no standby answering: the primary answers now
+    assert not primary.queried(True, 0.2, decides_absence=True)  # a later query finds it: stop
+    standby = AnswerRule(start=0.0, grace_s=1.0)
+    assert not standby.queried(False, 0.1, decides_absence=False)  # it may not have reached its primary yet
+    assert standby.answering(1.0)  # its grace decides
+    assert not standby.queried(True, 1.5, decides_absence=False)  # a query finds the primary: stop
+
+
 def test_roles_name_the_keys_each_server_watches():
     primary, standby = ServerRole("gpu1", standby="gpu2"), ServerRole("gpu2", primary="gpu1")
     assert primary.watched == answering_key("gpu1") == "pilot-servers/gpu1/standby-answering"

@@ -196,6 +196,7 @@ class PilotServer:
         self.grace_s = grace_s
         self.ready_s = ready_s
         self._seen: set[str] = set()  # cars whose frames reached this server (a primary waits for them)
+        self._events = 0  # token events seen (a query's answer older than the newest event is ignored)
         #: whether it answers the cars now; :attr:`rule` says when that changed (a pair only)
         self.answering = False
         self.rule: AnswerRule | None = None
@@ -321,6 +322,31 @@ class PilotServer:
         self.rule = AnswerRule(get_clock().now(), self.grace_s)
         self._watch = RoleWatch(self.session, self.role, self._token_seen)
         self._event_loop.call_later(self.grace_s + 1e-3, self._judge)
+        self._query()
+
+    def _query(self) -> None:
+        """Ask whether the other's token is there (at once, then every ``grace_s``): a primary decides on the
+        first answer; every answer puts right an event missed in a race (:meth:`.RoleWatch.query`)."""
+        loop, watch = self._event_loop, self._watch
+        if loop is None or watch is None:
+            return
+        events = self._events
+
+        def result(present: bool) -> None:
+            try:
+                loop.call_soon_threadsafe(self._queried, present, events)
+            except RuntimeError:  # the event loop is closed: the server is going away
+                pass
+
+        watch.query(result)
+        loop.call_later(max(self.grace_s, 0.1), self._query)
+
+    def _queried(self, present: bool, events: int) -> None:
+        """A query's answer (on the loop); ignored when a token event came while it was out (the event is newer)."""
+        rule, role = self.rule, self.role
+        if rule is None or role is None or self._watch is None or events != self._events:
+            return
+        self._apply(rule.queried(present, get_clock().now(), decides_absence=not role.is_standby))
 
     async def _warm_up(self) -> None:
         """One model call on a blank frame, off the loop: a runtime's first call allocates and can take many
@@ -353,7 +379,12 @@ class PilotServer:
         if rule is None or self._watch is None:
             return
         now = get_clock().now()
-        answer = rule.answering(now) if present is None else rule.token(present, now)
+        if present is not None:
+            self._events += 1
+        self._apply(rule.answering(now) if present is None else rule.token(present, now))
+
+    def _apply(self, answer: bool) -> None:
+        """Start or stop answering when the rule's answer changed (logged)."""
         if answer != self.answering:
             role = self.role
             assert role is not None

@@ -195,6 +195,15 @@ class AnswerRule:
             self.decided = True  # seen: the other's state is known from now on
         return self.answering(now)
 
+    def queried(self, present: bool, now: float, decides_absence: bool) -> bool:
+        """The answer of a liveliness query: the token is there or not. Presence decides; absence decides only
+        when ``decides_absence`` (a primary, which queries once the cars reach it, long after it dialled its
+        standby; a standby's session may not have reached its primary yet at start, so its grace decides)."""
+        self.present = bool(present)
+        if present or decides_absence:
+            self.decided = True
+        return self.answering(now)
+
     def answering(self, now: float) -> bool:
         """Whether to answer at ``now`` (records a switch when the answer changes)."""
         if not self.decided and now - self.start >= self.grace_s:
@@ -231,6 +240,23 @@ class RoleWatch:
 
     def _on_sample(self, sample: Any) -> None:
         self._on_event(sample.kind == self._kind_put)
+
+    def query(self, on_result: Callable[[bool], None]) -> None:
+        """Ask the network whether the watched token is there now; ``on_result(present)`` on Zenoh's thread when
+        the query completes. Events can be missed in a race (a token withdrawn while a subscription's history
+        is on its way): a periodic query puts the rule right."""
+        import zenoh
+
+        replies: list[Any] = []
+        try:
+            self.session.liveliness().get(
+                self.role.watched,
+                handler=zenoh.handlers.Callback(
+                    replies.append, lambda: on_result(any(r.ok is not None for r in replies))
+                ),
+            )
+        except Exception:  # the session is closing
+            pass
 
     def answering(self, answering: bool) -> None:
         """Declare (``True``) or withdraw this standby's ``standby-answering`` token; a primary: nothing."""

@@ -14,12 +14,17 @@ keys named after the primary:
 * the **standby answers while the primary's** ``alive`` **token is absent**;
 * the **primary answers while the standby's** ``standby-answering`` **token is absent**.
 
-Neither answers until it knows: a server starts *undecided*, watching its token, and decides after
-``grace_s`` (1 s) unless the watched token appeared meanwhile (the servers dial each other at start, and
-a token already declared reaches a newly connected session within a round trip). A server that answers
-declares its frame subscriptions (the cars send it frames only then: an idle standby costs no car any
-bandwidth); a server that stops answering first drops any answer still in its batch, then withdraws its
-subscriptions, then (the standby) its token.
+Neither answers until it knows: a server starts *undecided*, watching its token (a liveliness subscriber, and
+a liveliness query at once and every ``grace_s`` after, which puts right an event missed in a race), and
+decides when the token appears, or after ``grace_s`` (1 s) without it; a primary also decides on its first
+query's answer. A starting primary subscribes to the cars' frames first and declares its ``alive`` token only
+once every car's frames reach it (or after ``ready_s``, 3 s): a car reconnects to a restarted server on its
+own retry schedule (up to 2 s), and the standby must not hand back a car the primary cannot reach yet. A
+standby
+declares its frame subscriptions only while it answers (the cars send it frames only then: an idle standby
+costs no car any bandwidth); a server that stops answering first drops any answer still in its batch, then
+(the standby) withdraws its subscriptions and its token. A primary answers only frames that reach it while it
+answers.
 
 **Takeover** (the primary dies). A killed process's sockets are closed by its OS, so the standby sees the
 token go within a round trip; a machine that vanishes without closing them (power, cable) is noticed when its
@@ -30,9 +35,10 @@ model call. Measured in ``docs/scale-out.md``.
 
 **Hand-back** (the primary returns). The primary's ``alive`` token reaches the standby, which stops answering
 and withdraws ``standby-answering``; the primary, which has not answered yet (undecided, then waiting for that
-token to go), then declares its subscriptions and answers. No frame is answered twice: a frame reaches the
-primary only if the car sent it after learning of the primary's subscription, which follows the standby's
-withdrawal, which follows every answer the standby gave (and any answer it had not given yet is dropped).
+token to go), answers the frames that reach it from then on. A frame is answered twice only if it reaches the
+primary later than the standby's answer to it, the standby's withdrawal and that withdrawal's way to the
+primary together (the standby stops answering before it withdraws its token); never seen in the measurements
+(``docs/scale-out.md``), and if it happens the car keeps the first answer (``duplicates``).
 
 **A split** (both alive, but they cannot see each other: a broken link between the servers while each still
 reaches the cars). Each sees the other's token gone, so **both answer** every frame. The car takes the first

@@ -1,11 +1,11 @@
 """One part in one drive: what a run keeps about a part, apart from the plan ``Vehicle.add()`` made.
 
 A :class:`~asyncdonkey.core.plan.Entry` is the plan decided at ``add()`` and belongs to the vehicle, which can be
-driven again and again; nothing writes it while a car drives. Everything a drive learns or decides about a part
-lives in its :class:`PartRun`, made fresh when the drive starts and dropped when it ends: the errors counted, the
-timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs trigger, the re-entry
-guard that keeps it to one call at a time, and in checked mode its stores with their contract checks. So a second run
-starts from the plan as added, and a drive cannot change what the next one does.
+driven again and again; it is frozen, so nothing can write it while a car drives. Everything a drive learns or
+decides about a part lives in its :class:`PartRun`, made fresh when the drive starts and dropped when it ends: the
+errors counted, the timing series the profiler reports, the actuator's latency recorder, the pipelines its outputs
+trigger, the re-entry guard that keeps it to one call at a time, and in checked mode its stores with their contract
+checks. So a second run starts from the plan as added, and a drive cannot change what the next one does.
 
 Why it also holds copies of the plan's fields the tick reads (``run_condition``, ``args``, ``call``, ...): the tick
 walks one list of these objects and reads each field with one attribute lookup, as it did when they were all on

@@ -213,6 +213,34 @@ async def test_never_written_inputs_do_not_count_and_skipped_ones_do():
     assert [a[2] for a in ages.seen] == pytest.approx([0.0, 0.05, 0.10])
 
 
+@pytest.mark.asyncio
+@pytest.mark.virtual_clock
+@pytest.mark.parametrize("stating", [False, True], ids=["source", "stating-part"])
+async def test_a_none_among_a_sources_outputs_has_no_origin(stating):
+    """A remote pilot's subscriber returns (None, None) until its first command: nothing sensed, so no age."""
+
+    class Remote:
+        def __init__(self) -> None:
+            self.k = 0
+
+        def run(self):
+            self.k += 1
+            return (None, None) if self.k < 3 else (0.1, 0.5)
+
+    part = Remote()
+    if stating:
+        part.output_origin = lambda: None if part.k < 3 else 0.05  # nothing held: "use the rules"
+    ages = Record()
+    v = Vehicle()
+    v.add(part, outputs=["pilot/angle", "pilot/throttle"])
+    v.add(ages, inputs=["pilot/angle@age", "pilot/throttle@age"])
+    await v.run(RATE, 4)
+    assert ages.seen[:2] == [(math.inf, math.inf)] * 2
+    expected = 0.0 if not stating else 2 * PERIOD - 0.05
+    assert ages.seen[2] == pytest.approx((expected, expected), abs=1e-12)
+    assert v.mem.origin("pilot/throttle") is not None
+
+
 def test_memory_set_and_age_use_the_origin():
     now = [10.0]
     mem = Memory(clock=lambda: now[0])

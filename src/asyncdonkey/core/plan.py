@@ -424,12 +424,15 @@ def _stated_storer(
         return store_stated_one
 
     def store_stated_many(values: Any, args: Sequence[Any], now: float) -> None:
+        # An output of None among others holds nothing sensed: no origin, however young the others are (a
+        # remote pilot's subscriber returns (None, None) until its first command arrives; dated by the tick,
+        # that command-less throttle looked a few ms old).
         values = unpack(values)
         o = origin_of(now)
         for k, v in zip(outs, values, strict=False):
             d[k] = v
             stamps[k] = now
-            if o > _NEVER:
+            if o > _NEVER and v is not None:
                 origins[k] = o
             else:
                 origins.pop(k, None)

@@ -20,8 +20,7 @@ decides when the token appears, or after ``grace_s`` (1 s) without it; a primary
 query's answer. A starting primary subscribes to the cars' frames first and declares its ``alive`` token only
 once every car's frames reach it (or after ``ready_s``, 3 s): a car reconnects to a restarted server on its
 own retry schedule (up to 2 s), and the standby must not hand back a car the primary cannot reach yet. A
-standby
-declares its frame subscriptions only while it answers (the cars send it frames only then: an idle standby
+standby declares its frame subscriptions only while it answers (the cars send it frames only then: an idle standby
 costs no car any bandwidth); a server that stops answering first drops any answer still in its batch, then
 (the standby) withdraws its subscriptions and its token. A primary answers only frames that reach it while it
 answers.

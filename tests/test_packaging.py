@@ -181,11 +181,18 @@ def make(*args: str) -> subprocess.CompletedProcess[str]:
     VENV=.venv313``), and a sub-make takes them over its own command line; without this the test would check
     the outer call's VENV, not what the PYTHON given here picks.
     """
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "MAKEFLAGS", "MFLAGS",
-                                                             "MAKELEVEL", "MAKEOVERRIDES", "VENV", "PYTHON")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("PYTHONPATH", "VIRTUAL_ENV", "MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES", "VENV", "PYTHON")
+    }
     return subprocess.run(
         ["make", "--no-print-directory", "-C", str(ROOT), *args],
-        capture_output=True, text=True, timeout=60, env=env, check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+        check=False,
     )
 
 

@@ -68,9 +68,7 @@ async def test_two_cars_publish_status_and_the_view_shows_both():
         now = max(t for _, t in cars.values())
         screen = render_fleet(cars, now, width=200)  # the state and latency columns leave 120 too few for the ages
         lines = screen.splitlines()
-        assert lines[0] == (
-            "asyncdonkey top - 2 cars seen, 2 live, 0 no command, 0 stale, 0 silent (sorted by name)"
-        )
+        assert lines[0] == ("asyncdonkey top - 2 cars seen, 2 live, 0 no command, 0 stale, 0 silent (sorted by name)")
         assert lines[1].split()[:4] == ["CAR", "STATE", "HZ", "LAT"]
         alpha = next(line for line in lines if line.startswith("cars/alpha"))
         bravo = next(line for line in lines if line.startswith("cars/bravo"))

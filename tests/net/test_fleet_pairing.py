@@ -150,7 +150,8 @@ def test_top_marks_stale_and_silent_cars_and_sorts_them():
     assert order("latency") == ["cars/a", "cars/d", "cars/b", "cars/c"]  # slowest first, unknown last
     assert order("age") == ["cars/d", "cars/a", "cars/c", "cars/b"]  # oldest first
     screen = render_fleet(cars, now, sort="latency", stale_ms=250)
-    assert screen.splitlines()[0] == "asyncdonkey top - 4 cars seen, 2 live, 0 no command, 1 stale, 1 silent (sorted by latency)"
+    summary = "asyncdonkey top - 4 cars seen, 2 live, 0 no command, 1 stale, 1 silent (sorted by latency)"
+    assert screen.splitlines()[0] == summary
     rows = {line.split()[0]: line.split() for line in screen.splitlines()[2:] if line.startswith("cars/")}
     assert rows["cars/c"][1] == "SILENT" and rows["cars/d"][1] == "STALE" and rows["cars/a"][3] == "30.0"
     assert "parts ms" in screen and "parts ms" not in render_fleet(cars, now, parts=False)

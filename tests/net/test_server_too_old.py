@@ -39,7 +39,7 @@ FAILSAFE_S = 0.25
 SLOW_S = 0.4  # a model call past the window
 CMD = ["pilot/angle", "pilot/throttle"]
 #: a late tick on a loaded 2-core machine
-SLACK_S = 0.3
+SLACK_S = 0.5
 
 
 class SlowedPilot(BatchPilot):

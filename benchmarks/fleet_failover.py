@@ -24,8 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.net.fleet_car import SCRIPT, FleetProcess, record_sim_frames  # noqa: E402
-from tests.net.zenoh_loopback import free_port  # noqa: E402
+from tests.net.fleet_car import record_sim_frames  # noqa: E402
+from tests.net.standby_fleet import StandbyFleet  # noqa: E402
 
 
 def longest_gap(arrivals: list[float], t0: float, t1: float) -> float:
@@ -34,21 +34,9 @@ def longest_gap(arrivals: list[float], t0: float, t1: float) -> float:
 
 
 def one_round(work: Path, cars: list[str], frames: Path) -> list[dict]:
-    from asyncdonkey.parts.zenoh.pairing import make_fleet
-
-    files = make_fleet(
-        work / "fleet", cars=cars, server="gpu1", standby="gpu2", server_hosts=["127.0.0.1"],
-        standby_hosts=["127.0.0.1"], port=free_port(), standby_port=free_port(), listen_host="127.0.0.1",
-    )  # fmt: skip
-    model = str(ROOT / "examples" / "models" / "sim_pilot.onnx")
-
-    def server(config: Path) -> FleetProcess:
-        args = ["pilot-server", model, "--cars", *cars, "--config", str(config), "--stats-every", "0"]
-        return FleetProcess(["-m", "asyncdonkey.commands", *args], cwd=ROOT)
-
-    primary, standby = server(files.server_config), server(files.standby_config)
-    cfg = str(work / "fleet" / "{car}" / "car.json5")
-    procs = [FleetProcess([str(SCRIPT), "--frames", str(frames), "--car", c, "--config", cfg], cwd=ROOT) for c in cars]
+    fleet = StandbyFleet(work / "fleet", cars)
+    primary, standby = fleet.server(fleet.files.server_config), fleet.server(fleet.files.standby_config)
+    procs = fleet.car_processes(frames)
     deadline = time.monotonic() + 60
     while not all(p.of("driving") for p in procs):
         if time.monotonic() > deadline:
@@ -61,7 +49,7 @@ def one_round(work: Path, cars: list[str], frames: Path) -> list[dict]:
     primary.stop()
     time.sleep(3.0)
     t_back = time.monotonic()
-    primary = server(files.server_config)
+    primary = fleet.server(fleet.files.server_config)
     time.sleep(6.0)  # the primary starts (~1-2 s), takes its cars back, drives
     t_end = time.monotonic()
     for p in (*procs, primary, standby):

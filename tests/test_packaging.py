@@ -157,19 +157,28 @@ def test_the_installed_wheel_drives_the_simulated_car(installed, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------------- Makefile
-def other_python() -> str | None:
-    """An interpreter of another minor version than this one (on PATH or installed by pyenv), if there is one."""
-    mine = f"{sys.version_info[0]}.{sys.version_info[1]}"
+def python_version_of(interpreter: str) -> str | None:
+    """``3.13`` for a Python 3.13 interpreter; None when it does not run."""
+    probe = run(interpreter, "-c", "import sys; print('%d.%d' % sys.version_info[:2])", timeout=30)
+    return probe.stdout.strip() if probe.returncode == 0 else None
+
+
+def other_python(unlike: str | None = None) -> str | None:
+    """An interpreter (on PATH or installed by pyenv) of another minor version than ``unlike``.
+
+    ``unlike`` defaults to this interpreter's version. The Makefile's own default is ``python3``, which need not be
+    the interpreter running the suite: CI runs it again on 3.13 while ``python3`` is 3.11.
+    """
+    unlike = unlike or f"{sys.version_info[0]}.{sys.version_info[1]}"
     pyenv_root = os.environ.get("PYENV_ROOT", str(Path.home() / ".pyenv"))
     for minor in ("3.11", "3.12", "3.13", "3.14"):
-        if minor == mine:
+        if minor == unlike:
             continue
         found = shutil.which(f"python{minor}")
         candidates = [found] if found else []
         candidates += sorted(glob.glob(f"{pyenv_root}/versions/{minor}.*/bin/python{minor}"))
         for candidate in candidates:
-            probe = run(candidate, "-c", "import sys; print('%d.%d' % sys.version_info[:2])", timeout=30)
-            if probe.returncode == 0 and probe.stdout.strip() == minor:
+            if python_version_of(candidate) == minor:
                 return candidate
     return None
 
@@ -202,10 +211,12 @@ needs_make = pytest.mark.skipif(shutil.which("make") is None, reason="make is no
 @pytest.mark.subprocess
 @needs_make
 def test_another_python_gets_a_venv_of_its_own():
-    other = other_python()
+    """A PYTHON of another version than make's default (``python3``) gets .venv<major><minor>, never .venv."""
+    default = python_version_of("python3")
+    other = other_python(unlike=default)
     if other is None:
-        pytest.skip("no interpreter of another Python version here")
-    version = run(other, "-c", "import sys; print('%d%d' % sys.version_info[:2])").stdout.strip()
+        pytest.skip("no interpreter of another Python version than python3's here")
+    version = (python_version_of(other) or "").replace(".", "")
     out = ok(make("-n", "test-fast", f"PYTHON={other}"))
     assert f".venv{version}/bin/python -m pytest" in out, out
     assert ".venv/" not in out, out

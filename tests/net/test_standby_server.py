@@ -267,17 +267,6 @@ class _Constant:
         return [(self.angle, 0.5)] * len(frames)
 
 
-def _fleet(tmp_path: Path, cars: list[str]):
-    from asyncdonkey.parts.zenoh.pairing import make_fleet
-
-    from .zenoh_loopback import free_port
-
-    return make_fleet(
-        tmp_path / "fleet", cars=cars, server="gpu1", standby="gpu2", server_hosts=["127.0.0.1"],
-        standby_hosts=["127.0.0.1"], port=free_port(), standby_port=free_port(), listen_host="127.0.0.1",
-    )  # fmt: skip
-
-
 @pytest.mark.realtime
 @pytest.mark.network
 @pytest.mark.asyncio
@@ -288,9 +277,10 @@ async def test_a_split_makes_both_servers_answer_and_the_car_keeps_the_first_ans
     from asyncdonkey.parts.zenoh.link import zenoh_config
 
     from ..waiting import await_until
+    from .standby_fleet import pair_standby_fleet
     from .zenoh_loopback import free_port
 
-    files = _fleet(tmp_path, ["car1"])
+    files = pair_standby_fleet(tmp_path / "fleet", ["car1"])
     configs = []
     for path in (files.server_config, files.standby_config):
         cfg = zenoh_config(path)
@@ -358,19 +348,12 @@ def _gaps(arrivals: list[float], t0: float, t1: float) -> tuple[float, float]:
 @pytest.mark.subprocess
 def test_kill_9_of_the_primary_the_standby_takes_over_and_hands_back_without_double_answers(tmp_path, frames):
     from ..waiting import wait_until
-    from .fleet_car import SCRIPT, FleetProcess
+    from .standby_fleet import StandbyFleet
 
     cars = ["car1", "car2", "car3", "car4"]
-    files = _fleet(tmp_path, cars)
-    model = str(MODELS / "sim_pilot.onnx")
-
-    def server(config: Path) -> FleetProcess:
-        args = ["pilot-server", model, "--cars", *cars, "--config", str(config), "--stats-every", "0"]
-        return FleetProcess(["-m", "asyncdonkey.commands", *args], cwd=ROOT)
-
-    primary, standby = server(files.server_config), server(files.standby_config)
-    cfg = str(tmp_path / "fleet" / "{car}" / "car.json5")
-    procs = [FleetProcess([str(SCRIPT), "--frames", str(frames), "--car", c, "--config", cfg], cwd=ROOT) for c in cars]
+    fleet = StandbyFleet(tmp_path / "fleet", cars)
+    primary, standby = fleet.server(fleet.files.server_config), fleet.server(fleet.files.standby_config)
+    procs = fleet.car_processes(frames)
     everyone = [*procs, standby]
     try:
         wait_until(lambda: all(p.of("driving") for p in procs), 45, lambda: "every car to drive", 0.05)
@@ -381,7 +364,7 @@ def test_kill_9_of_the_primary_the_standby_takes_over_and_hands_back_without_dou
         primary.stop()
         time.sleep(2.0)
         t_back = time.monotonic()
-        primary = server(files.server_config)  # the primary returns: the standby hands back
+        primary = fleet.server(fleet.files.server_config)  # the primary returns: the standby hands back
         everyone.append(primary)
         wait_until(lambda: any("'gpu1': answering the cars" in line for line in primary.lines), 20, "hand-back")
         time.sleep(2.0)

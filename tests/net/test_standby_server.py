@@ -6,7 +6,8 @@ standby); what ``zenoh-pair --fleet --standby`` writes (both CNs in each car's r
 servers' mutual rules); the car's duplicate rule (the first answer of a frame kept, the second counted, the age
 true); in one process, the split (both answer: every second answer counted, ages true); and as processes, four
 cars on a primary and a standby: kill -9 of the primary and every car keeps being commanded within its failsafe
-window, no frame answered twice while both run, the primary back without a double answer.
+window, no frame answered twice while both run, the primary back without a double answer; SIGSTOP of the
+primary and each car's failsafe stops it until the standby, told by the lease, drives it.
 """
 
 from __future__ import annotations
@@ -394,3 +395,49 @@ def test_kill_9_of_the_primary_the_standby_takes_over_and_hands_back_without_dou
         lat = r["latency_ms"]
         assert lat and max(lat) < 4 * FAILSAFE_S * 1e3, (car, max(lat))  # each command aged by its own frame
         assert any(t_kill < t < t_back for t in arrivals) and any(t > t_back + 1.5 for t in arrivals)
+
+
+@pytest.mark.realtime
+@pytest.mark.network
+@pytest.mark.subprocess
+def test_a_frozen_primary_stops_the_cars_by_their_failsafe_until_the_standby_drives_them(tmp_path, frames):
+    """SIGSTOP keeps the primary's sockets open: the standby knows only when the primary's 1 s lease runs out,
+    so each car's own failsafe stops it first; then the standby drives. On SIGCONT the primary, which in its own
+    view never stopped answering, answers beside the standby until the two see each other (a brief split: the
+    car keeps the first answer of a frame), and takes the cars back. Every command a car stores is aged by its
+    own frame throughout."""
+    from ..waiting import wait_until
+    from .standby_fleet import StandbyFleet
+
+    cars = ["car1", "car2"]
+    fleet = StandbyFleet(tmp_path / "fleet", cars)
+    primary, standby = fleet.server(fleet.files.server_config), fleet.server(fleet.files.standby_config)
+    procs = fleet.car_processes(frames)
+    try:
+        wait_until(lambda: all(p.of("driving") for p in procs), 45, lambda: "every car to drive", 0.05)
+        time.sleep(1.5)
+        t_freeze = time.monotonic()
+        primary.p.send_signal(signal.SIGSTOP)
+        wait_until(lambda: "'gpu2': answering the cars" in "".join(standby.lines), 20, "the standby to take over")
+        time.sleep(1.0)  # driven by the standby
+        t_resume = time.monotonic()
+        primary.p.send_signal(signal.SIGCONT)
+        wait_until(lambda: "'gpu2': stopped answering" in "".join(standby.lines), 20, "the hand-back")
+        time.sleep(1.5)
+        t_end = time.monotonic()
+    finally:
+        primary.p.send_signal(signal.SIGCONT)  # a frozen process would not hear SIGTERM
+        for p in (*procs, primary, standby):
+            p.stop()
+    reports = {r["car"]: r for p in procs for r in p.of("report")}
+    assert set(reports) == set(cars), [p.lines[-3:] for p in procs]
+    for car, r in reports.items():
+        arrivals, changes = r["arrivals"], r["throttle_changes"]
+        # nobody commands the car until the lease runs out: its own failsafe stops it meanwhile
+        assert any(v == 0.0 and t_freeze < t < t_resume for t, v in changes), (car, changes)
+        # the standby drives it during the freeze, and the primary after its return
+        assert any(t_freeze + 0.3 < t < t_resume for t in arrivals), (car, "no command from the standby")
+        assert any(t > t_end - 1.0 for t in arrivals), (car, "no command after the hand-back")
+        # every stored command is aged by its own frame, as in the kill test
+        lat = r["latency_ms"]
+        assert lat and max(lat) < 4 * FAILSAFE_S * 1e3, (car, max(lat))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import math
 import signal
 import time
 import types
@@ -70,6 +71,25 @@ def test_a_query_decides_a_primary_at_once_and_a_standby_only_when_the_token_is_
     assert not standby.queried(True, 1.5, decides_absence=False)  # a query finds the primary: stop
 
 
+def test_a_server_back_from_an_absence_relearns_before_it_answers_again():
+    primary = AnswerRule(start=0.0, grace_s=1.0, away_s=2.0)
+    assert primary.queried(False, 0.1, decides_absence=True)  # decided: no standby answering
+    assert primary.answering(1.1) and primary.answering(2.1)  # consulted every second: it answers on
+    # frozen 4 s: back, it answers nothing on what it knew before, and a query's absence does not decide
+    assert not primary.answering(6.1) and primary.away == [(6.1, pytest.approx(4.0))]
+    assert not primary.queried(False, 6.15, decides_absence=True)
+    assert not primary.token(True, 6.2)  # the standby took over meanwhile: its token reaches it
+    assert not primary.answering(7.5)  # decided by the token: no answer while it is there, grace or not
+    assert primary.token(False, 7.6)  # the standby hands back
+    assert primary.switches == [(0.1, True), (6.1, False), (7.6, True)]
+    alone = AnswerRule(start=0.0, grace_s=1.0, away_s=2.0)
+    assert alone.answering(1.0) and not alone.answering(4.0)  # away: undecided again ...
+    assert not alone.answering(4.9) and alone.answering(5.0)  # ... until a grace passes with no token
+    assert not alone.relearning and alone.queried(False, 5.5, decides_absence=True)
+    with pytest.raises(ValueError, match="away_s"):
+        AnswerRule(0.0, grace_s=1.0, away_s=0.5)
+
+
 def test_roles_name_the_keys_each_server_watches():
     primary, standby = ServerRole("gpu1", standby="gpu2"), ServerRole("gpu2", primary="gpu1")
     assert primary.watched == answering_key("gpu1") == "pilot-servers/gpu1/standby-answering"
@@ -82,9 +102,9 @@ class _Pair:
     """A primary and a standby whose tokens reach each other ``delay`` s after they change (a simulation of
     :class:`RoleWatch` on a link that carries them), on a timeline of 1 ms steps."""
 
-    def __init__(self, grace_s: float, delay: float) -> None:
-        self.grace_s, self.delay = grace_s, delay
-        self.primary: AnswerRule | None = AnswerRule(0.0, grace_s)
+    def __init__(self, grace_s: float, delay: float, away_s: float = math.inf) -> None:
+        self.grace_s, self.delay, self.away_s = grace_s, delay, away_s
+        self.primary: AnswerRule | None = AnswerRule(0.0, grace_s, away_s)
         self.standby = AnswerRule(0.0, grace_s)
         self.inbox: list[tuple[float, str, bool]] = [(delay, "standby", True)]  # the primary's alive token
         self.both: list[float] = []
@@ -93,8 +113,23 @@ class _Pair:
         self.primary = None
         self.inbox.append((t + self.delay, "standby", False))
 
+    def freeze_primary(self, t: float, lease: float) -> AnswerRule:
+        """SIGSTOP: the primary's rule is not consulted and hears nothing; its token goes at the standby when
+        its lease runs out. Returns the rule, for :meth:`resume_primary`."""
+        frozen, self.primary = self.primary, None
+        assert frozen is not None
+        self.inbox.append((t + lease + self.delay, "standby", False))
+        return frozen
+
+    def resume_primary(self, rule: AnswerRule, t: float) -> None:
+        """SIGCONT: the same rule goes on; the sessions reconnect, and the tokens there reach each other."""
+        self.primary = rule
+        self.inbox.append((t + self.delay, "standby", True))
+        if self.standby.last:
+            self.inbox.append((t + self.delay, "primary", True))
+
     def start_primary(self, t: float) -> None:
-        self.primary = AnswerRule(t, self.grace_s)
+        self.primary = AnswerRule(t, self.grace_s, self.away_s)
         self.inbox.append((t + self.delay, "standby", True))
         if self.standby.last:  # the standby's answering token is already there: it reaches the new primary
             self.inbox.append((t + self.delay, "primary", True))
@@ -110,7 +145,7 @@ class _Pair:
                     if self.standby.token(present, t) != before:  # its own token follows its answer
                         self.inbox.append((t + self.delay, "primary", self.standby.last))
                 elif self.primary is not None:
-                    self.primary.token(present, t)
+                    self.primary.token(present, t)  # a frozen (or dead) primary hears nothing
             before = self.standby.last
             if self.standby.answering(t) != before:
                 self.inbox.append((t + self.delay, "primary", self.standby.last))
@@ -136,6 +171,28 @@ def test_with_tokens_that_arrive_within_the_grace_one_answers_and_hand_back_neve
     pair.run(kill + back, kill + back + 0.5 + 4 * delay + 0.01)
     assert pair.primary is not None and pair.primary.last and not pair.standby.last  # handed back
     assert pair.both == []  # never both, at start, at takeover or at hand-back
+
+
+@settings(max_examples=60)
+@given(
+    delay=st.floats(0.001, 0.2),
+    freeze=st.floats(1.0, 2.0),
+    frozen=st.floats(1.01, 3.0),
+)
+def test_a_primary_back_from_a_freeze_never_answers_beside_the_standby(delay, freeze, frozen):
+    """Frozen longer than ``away_s`` (1 s here; its lease 0.5 s): the standby takes over, and the primary, back,
+    relearns: never both, and the primary answers alone again once the standby has handed back."""
+    pair = _Pair(grace_s=0.25, delay=delay, away_s=1.0)
+    pair.run(0.0, freeze)
+    assert pair.primary is not None and pair.primary.last and not pair.standby.last
+    rule = pair.freeze_primary(freeze, lease=0.5)
+    pair.run(freeze, freeze + frozen)
+    assert pair.standby.last  # the lease ran out: the standby took over
+    pair.resume_primary(rule, freeze + frozen)
+    pair.run(freeze + frozen, freeze + frozen + 0.25 + 4 * delay + 0.01)
+    assert pair.both == []
+    assert pair.primary is not None and pair.primary.last and not pair.standby.last
+    assert rule.away and rule.away[0][1] == pytest.approx(frozen, abs=0.002)
 
 
 def test_a_split_makes_both_answer_and_healing_leaves_the_primary_alone():
@@ -402,10 +459,9 @@ def test_kill_9_of_the_primary_the_standby_takes_over_and_hands_back_without_dou
 @pytest.mark.subprocess
 def test_a_frozen_primary_stops_the_cars_by_their_failsafe_until_the_standby_drives_them(tmp_path, frames):
     """SIGSTOP keeps the primary's sockets open: the standby knows only when the primary's 1 s lease runs out,
-    so each car's own failsafe stops it first; then the standby drives. On SIGCONT the primary, which in its own
-    view never stopped answering, answers beside the standby until the two see each other (a brief split: the
-    car keeps the first answer of a frame), and takes the cars back. Every command a car stores is aged by its
-    own frame throughout."""
+    so each car's own failsafe stops it first; then the standby drives. On SIGCONT the primary, away longer than
+    its ``away_s``, relearns its pair before it answers: it never answers beside the standby, and takes the cars
+    back. Every command a car stores is aged by its own frame throughout."""
     from ..waiting import wait_until
     from .standby_fleet import StandbyFleet
 
@@ -419,7 +475,7 @@ def test_a_frozen_primary_stops_the_cars_by_their_failsafe_until_the_standby_dri
         t_freeze = time.monotonic()
         primary.p.send_signal(signal.SIGSTOP)
         wait_until(lambda: "'gpu2': answering the cars" in "".join(standby.lines), 20, "the standby to take over")
-        time.sleep(1.0)  # driven by the standby
+        time.sleep(2.0)  # driven by the standby; the primary frozen past its away_s (2 s)
         t_resume = time.monotonic()
         primary.p.send_signal(signal.SIGCONT)
         wait_until(lambda: "'gpu2': stopped answering" in "".join(standby.lines), 20, "the hand-back")
@@ -438,6 +494,10 @@ def test_a_frozen_primary_stops_the_cars_by_their_failsafe_until_the_standby_dri
         # the standby drives it during the freeze, and the primary after its return
         assert any(t_freeze + 0.3 < t < t_resume for t in arrivals), (car, "no command from the standby")
         assert any(t > t_end - 1.0 for t in arrivals), (car, "no command after the hand-back")
+        # back, the primary answered nothing beside the standby: no frame answered twice
+        assert r["counters"]["duplicates"] == 0, (car, r["counters"])
         # every stored command is aged by its own frame, as in the kill test
         lat = r["latency_ms"]
         assert lat and max(lat) < 4 * FAILSAFE_S * 1e3, (car, max(lat))
+    primary_log = "".join(primary.lines)
+    assert "'gpu1': its loop was away" in primary_log, primary_log[-2000:]

@@ -50,7 +50,7 @@ from .link import ZenohConfigError, ZenohLink, exposure, link_config
 from .pairing import PILOT_COMMAND
 from .parts import ZenohPublisher, ZenohSubscriber
 from .server_figures import ServerFigures
-from .standby import GRACE_S, READY_S, AnswerRule, RoleWatch, ServerRole, role_from_config
+from .standby import AWAY_S, GRACE_S, READY_S, AnswerRule, RoleWatch, ServerRole, role_from_config
 
 __all__ = ["PilotServer"]
 
@@ -144,6 +144,8 @@ class PilotServer:
         grace_s: a server of a pair watches this long for the other's token before it decides to answer.
         ready_s: a primary of a pair declares its token (so its standby hands back) once every car's frames
             reach it, or this long after it starts.
+        away_s: a server of a pair whose loop did not consult its rule for this long (frozen, suspended)
+            relearns what the other does before it answers again (:mod:`.standby`).
 
     **Frames are commands.** Whoever can publish ``cars/car1/cam/image_array`` to the server chooses the frames
     car1's command is computed from, and so steers car1. The server therefore refuses
@@ -173,6 +175,7 @@ class PilotServer:
         role: ServerRole | None = None,
         grace_s: float = GRACE_S,
         ready_s: float = READY_S,
+        away_s: float = AWAY_S,
     ) -> None:
         names = list(dict.fromkeys(cars))
         if not names or isinstance(cars, str):
@@ -195,6 +198,8 @@ class PilotServer:
         self.role = role if role is not None else (role_from_config(self.config) if self.config is not None else None)
         self.grace_s = grace_s
         self.ready_s = ready_s
+        self.away_s = away_s
+        self._returns = 0  # returns from an absence logged (len(rule.away))
         self._seen: set[str] = set()  # cars whose frames reached this server (a primary waits for them)
         self._events = 0  # token events seen (a query's answer older than the newest event is ignored)
         #: whether it answers the cars now; :attr:`rule` says when that changed (a pair only)
@@ -271,6 +276,8 @@ class PilotServer:
         """Send a car its command, aged by the frame it answers (its capture, carried across the network); not
         once this server has stopped answering (the other server of its pair answers from then on)."""
         car = self.cars[frame.car]
+        if self.answering and self.rule is not None:
+            self._judge()  # a server back from an absence (its loop frozen) must not answer on what it knew
         if not self.answering:
             self.withheld += 1
             return
@@ -319,7 +326,7 @@ class PilotServer:
         answer (a car whose link to it broke reconnects on its own schedule, up to 2 s)."""
         if self._watch is not None or self.role is None or self._event_loop is None:
             return
-        self.rule = AnswerRule(get_clock().now(), self.grace_s)
+        self.rule = AnswerRule(get_clock().now(), self.grace_s, self.away_s)
         self._watch = RoleWatch(self.session, self.role, self._token_seen)
         self._event_loop.call_later(self.grace_s + 1e-3, self._judge)
         self._query()
@@ -330,6 +337,7 @@ class PilotServer:
         loop, watch = self._event_loop, self._watch
         if loop is None or watch is None:
             return
+        self._judge()  # the loop's own pulse: a late one means it was away (:class:`.AnswerRule`)
         events = self._events
 
         def result(present: bool) -> None:
@@ -384,15 +392,27 @@ class PilotServer:
         self._apply(rule.answering(now) if present is None else rule.token(present, now))
 
     def _apply(self, answer: bool) -> None:
-        """Start or stop answering when the rule's answer changed (logged)."""
+        """Start or stop answering when the rule's answer changed (logged); after an absence, decide again once
+        the grace has passed (:class:`.AnswerRule`)."""
+        role, rule, loop = self.role, self.rule, self._event_loop
+        assert role is not None and rule is not None
+        if len(rule.away) > self._returns:
+            self._returns = len(rule.away)
+            logger.warning(
+                "pilot server %r: its loop was away %.1f s (frozen or suspended): it answers again once it knows"
+                " what the other server of its pair does",
+                role.name,
+                rule.away[-1][1],
+            )
+            if loop is not None:
+                loop.call_later(self.grace_s + 1e-3, self._judge)
         if answer != self.answering:
-            role = self.role
-            assert role is not None
             other = f"{role.primary!r} is not alive" if role.is_standby else "its standby does not answer"
+            stopped = "until it knows" if rule.relearning else "(the other server of its pair does)"
             logger.warning(
                 "pilot server %r: %s",
                 role.name,
-                f"answering the cars ({other})" if answer else "stopped answering (the other server of its pair does)",
+                f"answering the cars ({other})" if answer else f"stopped answering {stopped}",
             )
             self._set_answering(answer)
 

@@ -47,6 +47,15 @@ age stays the age of its own frame. When the split heals, the standby sees ``ali
 sees ``standby-answering`` and stops too until the standby's token goes (a few ms): they converge to the
 primary alone, without a livelock (the standby's state depends only on the primary being alive).
 
+**A server that was away relearns** (a SIGSTOP, a suspended VM, a machine that hung with its sockets open). Its
+peers dropped it when its lease ran out, and the other server may have taken over meanwhile; but what it last
+knew says it answers, and its own session learns otherwise only once its peers reach it again. So a server
+whose rule was not consulted for ``away_s`` (2 s; the server consults it every ``grace_s`` and at each answer)
+is undecided again, as at its start: it answers nothing until the other's token appears (then it waits for it
+to go) or ``grace_s`` passes without it, and a query's "absent" does not decide meanwhile (the query may run
+before the sessions are back). Measured in ``docs/scale-out.md``: a resumed primary then answers nothing
+beside the standby, where it otherwise answered the cars' next frames with it for up to 0.1 s.
+
 :class:`AnswerRule` is the decision alone (tested with fake token events on a controlled clock);
 :class:`RoleWatch` is the Zenoh side (tokens, the liveliness subscriber) feeding it.
 """
@@ -63,6 +72,7 @@ from typing import Any
 from ...errors import AsyncdonkeyError
 
 __all__ = [
+    "AWAY_S",
     "GRACE_S",
     "READY_S",
     "AnswerRule",
@@ -79,6 +89,8 @@ logger = logging.getLogger(__name__)
 GRACE_S = 1.0
 #: the longest a starting primary waits for every car's frames before it declares its token
 READY_S = 3.0
+#: a server whose rule was not consulted for this long was away (frozen, suspended) and relearns its pair
+AWAY_S = 2.0
 #: the subjects' ids in the server configs of ``zenoh-pair --fleet --standby`` (how a server learns its role)
 PRIMARY_SUBJECT = "pair-primary"
 STANDBY_SUBJECT = "pair-standby"
@@ -180,44 +192,71 @@ class AnswerRule:
 
     Events come from :class:`RoleWatch` (or a test): :meth:`token` for each appearance and withdrawal of the
     watched token. A server is undecided for ``grace_s`` after ``start`` unless the token appeared: it answers
-    from then on while the token is absent. ``switches`` records every change of the answer, ``(time, answering)``.
+    from then on while the token is absent. A call (any of them) more than ``away_s`` after the previous one makes
+    it undecided again from that moment (the server was away: module docstring), and until it decides again a
+    query's absence does not decide. ``switches`` records every change of the answer, ``(time, answering)``;
+    ``away`` every return from an absence, ``(time, seconds away)``.
     """
 
-    def __init__(self, start: float, grace_s: float = GRACE_S) -> None:
+    def __init__(self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf) -> None:
         if not (math.isfinite(grace_s) and grace_s >= 0):
             raise ValueError(f"AnswerRule: grace_s must be a number of seconds >= 0, got {grace_s!r}")
+        if not (away_s > grace_s):
+            raise ValueError(f"AnswerRule: away_s must be longer than grace_s ({grace_s!r} s), got {away_s!r}")
         self.start = float(start)
         self.grace_s = float(grace_s)
+        self.away_s = float(away_s)
         self.present = False
         self.decided = False
+        self.relearning = False
         self.last = False
+        self.consulted = self.start
         self.switches: list[tuple[float, bool]] = []
+        self.away: list[tuple[float, float]] = []
 
     def token(self, present: bool, now: float) -> bool:
         """The watched token appeared (``True``) or went (``False``); returns whether to answer now."""
+        self._returned(now)
         self.present = bool(present)
         if present:
-            self.decided = True  # seen: the other's state is known from now on
+            self._decide()  # seen: the other's state is known from now on
         return self.answering(now)
 
     def queried(self, present: bool, now: float, decides_absence: bool) -> bool:
         """The answer of a liveliness query: the token is there or not. Presence decides; absence decides only
         when ``decides_absence`` (a primary, which queries once the cars reach it, long after it dialled its
-        standby; a standby's session may not have reached its primary yet at start, so its grace decides)."""
+        standby; a standby's session may not have reached its primary yet at start, so its grace decides) and
+        the server is not relearning after an absence."""
+        self._returned(now)
         self.present = bool(present)
-        if present or decides_absence:
-            self.decided = True
+        if present or (decides_absence and not self.relearning):
+            self._decide()
         return self.answering(now)
 
     def answering(self, now: float) -> bool:
         """Whether to answer at ``now`` (records a switch when the answer changes)."""
+        self._returned(now)
         if not self.decided and now - self.start >= self.grace_s:
-            self.decided = True
+            self._decide()
         answer = self.decided and not self.present
         if answer != self.last:
             self.last = answer
             self.switches.append((now, answer))
         return answer
+
+    def _decide(self) -> None:
+        self.decided = True
+        self.relearning = False
+
+    def _returned(self, now: float) -> None:
+        """Undecided again, from ``now``, when the previous call was more than ``away_s`` ago."""
+        gap = now - self.consulted
+        self.consulted = max(self.consulted, now)
+        if gap > self.away_s:
+            self.away.append((now, gap))
+            self.start = now
+            self.decided = False
+            self.relearning = True
 
 
 class RoleWatch:

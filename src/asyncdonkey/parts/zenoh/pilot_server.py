@@ -327,7 +327,7 @@ class PilotServer:
         if self._watch is not None or self.role is None or self._event_loop is None:
             return
         self.rule = AnswerRule(get_clock().now(), self.grace_s, self.away_s)
-        self._watch = RoleWatch(self.session, self.role, self._token_seen)
+        self._watch = RoleWatch(self.session, self.role, self._token_seen, self._running_seen)
         self._event_loop.call_later(self.grace_s + 1e-3, self._judge)
         self._query()
 
@@ -380,6 +380,25 @@ class PilotServer:
             loop.call_soon_threadsafe(self._judge, present)
         except RuntimeError:  # the event loop is closed: the server is going away
             pass
+
+    def _running_seen(self, present: bool) -> None:
+        """The other server's running token appeared or went (Zenoh's thread): on the loop, and judged again once
+        ``settle_s`` has passed (a relearning server decides then: :class:`.AnswerRule`)."""
+        loop = self._event_loop
+        if loop is None:
+            return
+        try:
+            loop.call_soon_threadsafe(self._ran, present)
+        except RuntimeError:  # the event loop is closed: the server is going away
+            pass
+
+    def _ran(self, present: bool) -> None:
+        rule, loop = self.rule, self._event_loop
+        if rule is None or self._watch is None or loop is None:
+            return
+        self._apply(rule.running(present, get_clock().now()))
+        if rule.reached_at is not None:
+            loop.call_later(rule.settle_s + 1e-3, self._judge)
 
     def _judge(self, present: bool | None = None) -> None:
         """Apply the pair's rule now (on the loop), after a token event or when the grace ends."""

@@ -7,7 +7,9 @@ that declared it is connected; Zenoh withdraws it when that session closes, dies
 keys named after the primary:
 
 * ``pilot-servers/<primary>/alive``: the primary declares it for as long as it runs;
-* ``pilot-servers/<primary>/standby-answering``: the standby declares it while it answers.
+* ``pilot-servers/<primary>/standby-answering``: the standby declares it while it answers;
+* ``pilot-servers/<primary>/standby``: the standby declares it for as long as it runs (see *A server that was
+  away*).
 
 **The rule** (:class:`AnswerRule`, the same for both; each watches the other's token):
 
@@ -52,9 +54,15 @@ peers dropped it when its lease ran out, and the other server may have taken ove
 knew says it answers, and its own session learns otherwise only once its peers reach it again. So a server
 whose rule was not consulted for ``away_s`` (2 s; the server consults it every ``grace_s`` and at each answer)
 is undecided again, as at its start: it answers nothing until the other's token appears (then it waits for it
-to go) or ``grace_s`` passes without it, and a query's "absent" does not decide meanwhile (the query may run
-before the sessions are back). Measured in ``docs/scale-out.md``: a resumed primary then answers nothing
-beside the standby, where it otherwise answered the cars' next frames with it for up to 0.1 s.
+to go), or the other's running token (``standby``, ``alive``) appears and ``settle_s`` (0.1 s) passes without
+the watched one, or ``grace_s`` passes without either. A query's "absent" does not decide meanwhile: a query
+that runs before the sessions are back is answered from what the session knew before the absence. The running
+token matters for a resumed primary: the standby sees ``alive`` come back and withdraws
+``standby-answering``, often before the primary's session hears of that token at all, so no event of the
+watched token would ever tell the primary; but the ``standby`` token reappears as the sessions reconnect, and
+the standby's answering token, if still there, comes with it. Measured in ``docs/scale-out.md``: a resumed
+primary answers nothing beside the standby, where it otherwise answered the cars' next frames with it for up
+to 0.1 s.
 
 :class:`AnswerRule` is the decision alone (tested with fake token events on a controlled clock);
 :class:`RoleWatch` is the Zenoh side (tokens, the liveliness subscriber) feeding it.
@@ -81,6 +89,7 @@ __all__ = [
     "StandbyConfigError",
     "alive_key",
     "answering_key",
+    "standby_key",
 ]
 
 logger = logging.getLogger(__name__)
@@ -91,6 +100,8 @@ GRACE_S = 1.0
 READY_S = 3.0
 #: a server whose rule was not consulted for this long was away (frozen, suspended) and relearns its pair
 AWAY_S = 2.0
+#: a relearning server decides this long after the other's running token appeared without the watched one
+SETTLE_S = 0.1
 #: the subjects' ids in the server configs of ``zenoh-pair --fleet --standby`` (how a server learns its role)
 PRIMARY_SUBJECT = "pair-primary"
 STANDBY_SUBJECT = "pair-standby"
@@ -108,6 +119,11 @@ def alive_key(primary: str) -> str:
 def answering_key(primary: str) -> str:
     """The standby's liveliness token: declared while it answers the cars."""
     return f"pilot-servers/{primary}/standby-answering"
+
+
+def standby_key(primary: str) -> str:
+    """The standby's presence token: declared for as long as it runs."""
+    return f"pilot-servers/{primary}/standby"
 
 
 def pair_keys(primary: str) -> str:
@@ -143,6 +159,11 @@ class ServerRole:
     def watched(self) -> str:
         """The other server's token this one watches: it answers while that token is absent."""
         return alive_key(self.pair) if self.is_standby else answering_key(self.pair)
+
+    @property
+    def other_running(self) -> str:
+        """The other server's token that exists while it runs: its appearance says the sessions are back."""
+        return alive_key(self.pair) if self.is_standby else standby_key(self.pair)
 
     def describe(self) -> str:
         if self.is_standby:
@@ -193,12 +214,15 @@ class AnswerRule:
     Events come from :class:`RoleWatch` (or a test): :meth:`token` for each appearance and withdrawal of the
     watched token. A server is undecided for ``grace_s`` after ``start`` unless the token appeared: it answers
     from then on while the token is absent. A call (any of them) more than ``away_s`` after the previous one makes
-    it undecided again from that moment (the server was away: module docstring), and until it decides again a
-    query's absence does not decide. ``switches`` records every change of the answer, ``(time, answering)``;
-    ``away`` every return from an absence, ``(time, seconds away)``.
+    it undecided again from that moment (the server was away: module docstring): until it decides again a
+    query's absence does not decide, and :meth:`running` (the other's running token appeared) decides once
+    ``settle_s`` passes without the watched token. ``switches`` records every change of the answer, ``(time,
+    answering)``; ``away`` every return from an absence, ``(time, seconds away)``.
     """
 
-    def __init__(self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf) -> None:
+    def __init__(
+        self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf, settle_s: float = SETTLE_S
+    ) -> None:
         if not (math.isfinite(grace_s) and grace_s >= 0):
             raise ValueError(f"AnswerRule: grace_s must be a number of seconds >= 0, got {grace_s!r}")
         if not (away_s > grace_s):
@@ -206,6 +230,8 @@ class AnswerRule:
         self.start = float(start)
         self.grace_s = float(grace_s)
         self.away_s = float(away_s)
+        self.settle_s = float(settle_s)
+        self.reached_at: float | None = None  # when the other's running token appeared, while relearning
         self.present = False
         self.decided = False
         self.relearning = False
@@ -233,10 +259,20 @@ class AnswerRule:
             self._decide()
         return self.answering(now)
 
+    def running(self, present: bool, now: float) -> bool:
+        """The other server's running token appeared (``True``) or went: while relearning, its appearance says
+        the sessions are back, and the rule decides ``settle_s`` later unless the watched token came with it."""
+        self._returned(now)
+        if present and self.relearning:
+            self.reached_at = now
+        return self.answering(now)
+
     def answering(self, now: float) -> bool:
         """Whether to answer at ``now`` (records a switch when the answer changes)."""
         self._returned(now)
-        if not self.decided and now - self.start >= self.grace_s:
+        if not self.decided and (
+            now - self.start >= self.grace_s or (self.reached_at is not None and now - self.reached_at >= self.settle_s)
+        ):
             self._decide()
         answer = self.decided and not self.present
         if answer != self.last:
@@ -247,6 +283,7 @@ class AnswerRule:
     def _decide(self) -> None:
         self.decided = True
         self.relearning = False
+        self.reached_at = None
 
     def _returned(self, now: float) -> None:
         """Undecided again, from ``now``, when the previous call was more than ``away_s`` ago."""
@@ -257,17 +294,26 @@ class AnswerRule:
             self.start = now
             self.decided = False
             self.relearning = True
+            self.reached_at = None
 
 
 class RoleWatch:
     """The Zenoh side of a pair (module docstring): this server's own token, and the other's watched.
 
     ``on_event(present)`` is called on Zenoh's thread for each appearance (``True``) or withdrawal of the
-    watched token; hand it to the event loop. :meth:`answering` declares or withdraws the standby's
-    ``standby-answering`` token (a primary declares nothing more).
+    watched token, ``on_running(present)`` for the other's running token when it is another key (the
+    primary's watch); hand them to the event loop. :meth:`answering` declares or withdraws the standby's
+    ``standby-answering`` token (a primary declares nothing more). Its own running token (``alive`` for the
+    primary, ``standby`` for the standby) is declared for as long as the watch is open.
     """
 
-    def __init__(self, session: Any, role: ServerRole, on_event: Callable[[bool], None]) -> None:
+    def __init__(
+        self,
+        session: Any,
+        role: ServerRole,
+        on_event: Callable[[bool], None],
+        on_running: Callable[[bool], None] | None = None,
+    ) -> None:
         import zenoh
 
         self.session = session
@@ -277,13 +323,18 @@ class RoleWatch:
         self._answering: Any = None
         self._kind_put = zenoh.SampleKind.PUT
         self._on_event = on_event
+        self._on_running = on_running
+        self._watched, self._running = role.watched, role.other_running
         liveliness = session.liveliness()
-        if not role.is_standby:
-            self._token = liveliness.declare_token(alive_key(role.pair))
-        self._sub = liveliness.declare_subscriber(role.watched, self._on_sample, history=True)
+        self._token = liveliness.declare_token(standby_key(role.pair) if role.is_standby else alive_key(role.pair))
+        self._sub = liveliness.declare_subscriber(pair_keys(role.pair), self._on_sample, history=True)
 
     def _on_sample(self, sample: Any) -> None:
-        self._on_event(sample.kind == self._kind_put)
+        key, present = str(sample.key_expr), sample.kind == self._kind_put
+        if key == self._watched:
+            self._on_event(present)
+        elif key == self._running and self._on_running is not None:
+            self._on_running(present)
 
     def query(self, on_result: Callable[[bool], None]) -> None:
         """Ask the network whether the watched token is there now; ``on_result(present)`` on Zenoh's thread when

@@ -100,6 +100,8 @@ def test_a_server_back_from_an_absence_relearns_before_it_answers_again():
     assert not AnswerRule(0.0, 1.0).running(True, 0.1)  # not relearning: the running token decides nothing
     with pytest.raises(ValueError, match="away_s"):
         AnswerRule(0.0, grace_s=1.0, away_s=0.5)
+    with pytest.raises(ValueError, match="settle_s"):
+        AnswerRule(0.0, grace_s=1.0, settle_s=float("nan"))
 
 
 def test_roles_name_the_keys_each_server_watches():

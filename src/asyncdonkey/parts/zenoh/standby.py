@@ -127,7 +127,8 @@ def standby_key(primary: str) -> str:
 
 
 def pair_keys(primary: str) -> str:
-    """The key expression covering both tokens of a pair (what the servers' access rules allow between them)."""
+    """The key expression covering the tokens of a pair (what the servers' access rules allow between them, and
+    what each server's liveliness subscriber watches)."""
     return f"pilot-servers/{primary}/**"
 
 
@@ -227,6 +228,8 @@ class AnswerRule:
             raise ValueError(f"AnswerRule: grace_s must be a number of seconds >= 0, got {grace_s!r}")
         if not (away_s > grace_s):
             raise ValueError(f"AnswerRule: away_s must be longer than grace_s ({grace_s!r} s), got {away_s!r}")
+        if not (math.isfinite(settle_s) and settle_s >= 0):
+            raise ValueError(f"AnswerRule: settle_s must be a number of seconds >= 0, got {settle_s!r}")
         self.start = float(start)
         self.grace_s = float(grace_s)
         self.away_s = float(away_s)

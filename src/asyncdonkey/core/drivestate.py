@@ -23,10 +23,10 @@ from ..ratelimit import LogThrottle
 
 if TYPE_CHECKING:
     from ..errors import PartError
+    from ..safety.activity import LoopActivity
     from .partrun import PartRun
     from .pipeline import Pipeline, Reaction, ReentryGuard
     from .plan import Entry
-    from .runtypes import LoopActivity
 
 __all__ = ["BackgroundWork", "DriveLog", "DriveSettings", "StopLatch", "TickCounters"]
 

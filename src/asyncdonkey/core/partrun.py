@@ -16,16 +16,15 @@ for this drive only.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Protocol
 
-from .runtypes import TickStep
+from .runtypes import Kickable, TickStep
 
 if TYPE_CHECKING:
-    from .pipeline import Pipeline, ReentryGuard
     from .plan import Entry
 
-__all__ = ["PartRun"]
+__all__ = ["CallGuard", "PartRun"]
 
 
 class PartRun(TickStep):
@@ -62,6 +61,25 @@ class PartRun(TickStep):
         #: an actuator the loop measures itself: ``latency(run end)`` records its sensing-to-actuation latency
         self.latency: Callable[[float], None] | None = None
         #: (channel, pipeline) pairs the part's outputs trigger (``asyncdonkey.core.pipeline``)
-        self.kicks: tuple[tuple[str, Pipeline], ...] = ()
+        self.kicks: tuple[tuple[str, Kickable], ...] = ()
         #: its :class:`~asyncdonkey.core.pipeline.ReentryGuard` when more than one path can be inside its call at once
-        self.reentry_guard: ReentryGuard | None = None
+        self.reentry_guard: CallGuard | None = None
+
+
+class CallGuard(Protocol):
+    """A part's re-entry guard (:class:`~asyncdonkey.core.pipeline.ReentryGuard`) as the paths that call the part
+    hold it: declared beside the run it guards, so that the run does not import the module that builds guards
+    around it. A path enters (:meth:`enter`), calls through :attr:`call`, then leaves (:meth:`leave`); a reaction
+    or the tick uses :meth:`run_stored` (enter, read the inputs, call, store, leave) instead."""
+
+    @property
+    def run(self) -> PartRun: ...
+
+    @property
+    def call(self) -> Callable[..., Awaitable[Any]]: ...
+
+    async def enter(self) -> bool: ...
+
+    def leave(self) -> None: ...
+
+    async def run_stored(self, kicks: bool = False) -> float | None: ...

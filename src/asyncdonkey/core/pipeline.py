@@ -50,23 +50,61 @@ What each mode keeps and loses is in ``docs/control-periods.md``.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import functools
 import logging
 import threading
 from collections.abc import Awaitable, Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..errors import PartTimeoutError
-from .partrun import PartRun
+from .partrun import CallGuard, PartRun
 from .plan import with_timeout
 from .runtypes import TickStep
 
 if TYPE_CHECKING:
-    from .runtypes import PipelineHost
+    from ..clock import Clock
+    from ..memory import Memory
 
 __all__ = ["GuardedTick", "Pipeline", "ReentryGuard", "TickKicker", "build_pipelines", "needs_guard"]
 
 logger = logging.getLogger("asyncdonkey.loop")
+
+
+class PipelineWork(Protocol):
+    """What the pipelines use of the drive's background work: the wiring fills its push sources and re-entry
+    guards, a guarded executor part's calls use its worker pool."""
+
+    push_sources: list[tuple[PartRun, Any, Reaction | None]]
+    reentry_guards: list[ReentryGuard]
+
+    def get_executor(self) -> concurrent.futures.Executor: ...
+
+
+class PipelineHost(Protocol):
+    """What the pipelines and reactions use of the drive they run beside (``runs``: each part's
+    :class:`~asyncdonkey.core.partrun.PartRun` for this drive, in add() order)."""
+
+    @property
+    def runs(self) -> Sequence[PartRun]: ...
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def mem(self) -> Memory: ...
+
+    @property
+    def on(self) -> bool: ...
+
+    #: the work beside the ticks (``asyncdonkey.core.drivestate.BackgroundWork``)
+    @property
+    def work(self) -> PipelineWork: ...
+
+    def background_failed(self, e: PartRun, exc: BaseException, what: str = ...) -> None: ...
 
 
 class Pipeline:
@@ -507,7 +545,7 @@ class GuardedTick(TickStep):
 
     __slots__ = ("run",)
 
-    def __init__(self, guard: ReentryGuard) -> None:
+    def __init__(self, guard: CallGuard) -> None:
         e = self.run = guard.run
         self.name = e.name
         self.run_condition = e.run_condition
@@ -586,9 +624,10 @@ def guard_entries(drive: PipelineHost, tick: list[TickStep], pipelines: list[Pip
     guards = drive.work.reentry_guards
     guards.clear()
     for e in drive.runs:
-        e.reentry_guard = ReentryGuard(drive, e) if needs_guard(e, reacting) else None
-        if e.reentry_guard is not None:
-            guards.append(e.reentry_guard)
+        guard = ReentryGuard(drive, e) if needs_guard(e, reacting) else None
+        e.reentry_guard = guard
+        if guard is not None:
+            guards.append(guard)
     for i, t in enumerate(tick):
         if isinstance(t, PartRun) and t.reentry_guard is not None:
             tick[i] = GuardedTick(t.reentry_guard)

@@ -1,28 +1,33 @@
 """The narrow views of a running drive that the modules around it need, as :class:`typing.Protocol` classes.
 
-Why. The watchdog, the signal handler, shutdown and the pipelines each read a few fields of the drive in
-progress. Typed against the whole ``Drive`` (or ``Vehicle``), each had to import the module that imports it,
-and the core became one circle of modules. Each now names only what it reads, here, below all of them; the
-``Drive`` and the ``Vehicle`` satisfy these protocols without knowing of them.
+Why. The watchdog, the signal handler, shutdown, the safety attachment and the pipelines each read a few fields
+of the drive in progress. Typed against the whole ``Drive`` (or ``Vehicle``), each had to import the module that
+imports it, and the core became one circle of modules. Each now names only what it reads; the ``Drive`` and the
+``Vehicle`` satisfy these protocols without knowing of them. The views that several modules share are here, below
+all of them, and import nothing of the drive (:mod:`.plan`'s types only), so that no circle closes even through
+imports for the type checker; a view only one module uses lives with it (``ShutdownScope`` in
+:mod:`.shutdown`, ``PipelineHost`` in :mod:`.pipeline`, ``SafetyHost`` in :mod:`asyncdonkey.safety.attach`), and
+what the threads that watch the loop read of it (``LoopActivity``, ``RunningCall``) in
+:mod:`asyncdonkey.safety.activity`, below the core.
 """
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
-if TYPE_CHECKING:  # types only: each of these modules imports this one
-    from ..clock import Clock
-    from ..memory import Memory
-    from ..safety.process import SafetyProcess
-    from ..safety.watchdog import Watchdog
-    from .drivestate import BackgroundWork
-    from .partrun import PartRun
-    from .pipeline import Pipeline
-    from .plan import Entry, OnError
+if TYPE_CHECKING:  # types only
+    from ..safety.activity import LoopActivity
+    from .plan import OnError
 
-__all__ = ["LoopActivity", "PipelineHost", "RunningCall", "SafetyHost", "ShutdownScope", "Stoppable", "TickStep"]
+__all__ = ["Kickable", "Stoppable", "TickStep"]
+
+
+class Kickable(Protocol):
+    """What a step's outputs trigger (a pipeline started by a new value: ``asyncdonkey.core.pipeline.Pipeline``):
+    told after each store that the channel got a value sensed at ``origin``."""
+
+    def new_value(self, origin: float | None) -> None: ...
 
 
 class TickStep(Protocol):
@@ -65,7 +70,7 @@ class TickStep(Protocol):
     #: ``store(result, args, now)``: the outputs into Memory (``None``: the step stores nothing itself)
     store: Callable[[Any, Any, float], None] | None
     #: (channel, pipeline) pairs its outputs trigger, told after each store (``after_store``)
-    kicks: tuple[tuple[str, Pipeline], ...]
+    kicks: tuple[tuple[str, Kickable], ...]
     #: an actuator the loop measures itself: ``latency(end of its call)``
     latency: Callable[[float], None] | None
     #: what a failure does (``"stop"``, ``"continue"``) and how many there were this drive
@@ -75,40 +80,6 @@ class TickStep(Protocol):
     timeout: float | None
 
 
-class RunningCall(Protocol):
-    """What the loop thread is inside (a part's run, or what the tick calls in its place), as the watchdog and the
-    signal handler name it: whether it holds the loop thread until it returns."""
-
-    @property
-    def name(self) -> str: ...
-
-    @property
-    def is_sync_inline(self) -> bool: ...
-
-
-class LoopActivity(Protocol):
-    """What the loop thread is doing, read from other threads (the watchdog, the signal handler).
-
-    ``current`` is the step running now (``None`` between parts), ``part_started`` when it started on the
-    runtime clock (``inf`` between parts), ``on`` whether the drive ticks. Read-only here: only the loop thread
-    writes them."""
-
-    @property
-    def on(self) -> bool: ...
-
-    @property
-    def current(self) -> RunningCall | None: ...
-
-    @property
-    def part_started(self) -> float: ...
-
-    @property
-    def entries(self) -> Sequence[Entry]: ...
-
-    @property
-    def stop_grace_s(self) -> float: ...
-
-
 class Stoppable(Protocol):
     """A vehicle as the signal handler sees it: a stop request, and the drive in progress (or ``None``)."""
 
@@ -116,69 +87,3 @@ class Stoppable(Protocol):
 
     @property
     def drive(self) -> LoopActivity | None: ...
-
-
-class ShutdownScope(Protocol):
-    """What shutdown takes down: the entries, the background work the drive owns (its tasks, threads and worker
-    pool; the parts abandoned are noted there), its watchdog."""
-
-    @property
-    def entries(self) -> Sequence[Entry]: ...
-
-    @property
-    def loop(self) -> asyncio.AbstractEventLoop: ...
-
-    @property
-    def work(self) -> BackgroundWork: ...
-
-    @property
-    def watchdog(self) -> Watchdog | None: ...
-
-
-class PipelineHost(Protocol):
-    """What the pipelines and reactions use of the drive they run beside (``runs``: each part's
-    :class:`~asyncdonkey.core.partrun.PartRun` for this drive, in add() order)."""
-
-    @property
-    def runs(self) -> Sequence[PartRun]: ...
-
-    @property
-    def loop(self) -> asyncio.AbstractEventLoop: ...
-
-    @property
-    def clock(self) -> Clock: ...
-
-    @property
-    def mem(self) -> Memory: ...
-
-    @property
-    def on(self) -> bool: ...
-
-    #: the work beside the ticks: the pipelines' wiring fills its push sources and re-entry guards, a guarded
-    #: executor part's calls use its worker pool
-    @property
-    def work(self) -> BackgroundWork: ...
-
-    def background_failed(self, e: PartRun, exc: BaseException, what: str = ...) -> None: ...
-
-
-class SafetyHost(LoopActivity, Protocol):
-    """A drive as its safety attachment (``asyncdonkey.safety.attach``) sees it: the parts' runs, the clock, the
-    channels' origins, the stop request the safety process may make, and the watchdog and safety process it
-    attaches (and the drive reports on)."""
-
-    @property
-    def runs(self) -> Sequence[PartRun]: ...
-
-    @property
-    def clock(self) -> Clock: ...
-
-    @property
-    def mem(self) -> Memory: ...
-
-    #: set by the attachment: the in-process watchdog (``None``: none runs)
-    watchdog: Watchdog | None
-    #: set by the attachment: the safety process (``None``: none runs)
-    safety_process: SafetyProcess | None
-
-    def request_stop(self, reason: str = ...) -> None: ...

@@ -21,12 +21,13 @@ import asyncio
 import inspect
 import logging
 import threading
-from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any, TypeVar
+from collections.abc import Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 if TYPE_CHECKING:
+    from ..safety.watchdog import Watchdog
+    from .drivestate import BackgroundWork
     from .plan import Entry
-    from .runtypes import ShutdownScope
 
 __all__ = ["in_daemon_thread", "shutdown_drive"]
 
@@ -35,6 +36,23 @@ T = TypeVar("T")
 
 #: extra time allowed to a part that bounds its own shutdown with the timeout we pass it
 _SELF_BOUNDED_MARGIN_S = 0.5
+
+
+class ShutdownScope(Protocol):
+    """What shutdown takes down: the entries, the background work the drive owns (its tasks, threads and worker
+    pool; the parts abandoned are noted there), its watchdog."""
+
+    @property
+    def entries(self) -> Sequence[Entry]: ...
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    @property
+    def work(self) -> BackgroundWork: ...
+
+    @property
+    def watchdog(self) -> Watchdog | None: ...
 
 
 def in_daemon_thread(

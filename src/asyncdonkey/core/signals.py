@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING, Any
 from ..errors import PartInterrupted
 
 if TYPE_CHECKING:
-    from .runtypes import LoopActivity, RunningCall, Stoppable
+    from ..safety.activity import LoopActivity, RunningCall
+    from .runtypes import Stoppable
 
 __all__ = ["EXIT_INTERRUPTED", "PartInterrupted", "force_safe_exit", "stop_on_signals"]
 

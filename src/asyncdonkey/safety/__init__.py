@@ -10,9 +10,11 @@ What lives here:
   ``python -I guard.py``, so it imports nothing but the standard library and smbus2);
 * :mod:`asyncdonkey.safety.process` — the car's side of it (start, heartbeat, deadlines, figures);
 * :mod:`asyncdonkey.safety.unsafe` — how long an output was unsafe, measured from the deadline that made it so;
+* :mod:`asyncdonkey.safety.activity` — what the loop thread is doing, as the watchdog and the signal handler
+  read it (Protocols the core's ``Drive`` satisfies);
 * :mod:`asyncdonkey.safety.attach` — one drive's safety attachment: it starts the safety process and the
   watchdog and wires each actuator to them, called by the drive (typed against
-  :class:`~asyncdonkey.core.runtypes.SafetyHost`, never the ``Drive`` class).
+  :class:`~asyncdonkey.safety.attach.SafetyHost`, never the ``Drive`` class).
 
 The rest of the safety story sits where its work is: :mod:`asyncdonkey.core.signals` (Ctrl-C and SIGTERM stop the
 drive within a bound, a second one makes the actuators safe and exits), the first phase of

@@ -5,7 +5,7 @@ The drive (:class:`~asyncdonkey.core.drive.Drive`) calls these three steps of it
 :func:`detach_actuators` once shutdown has run, whatever ended the drive. They sit here, beside the watchdog and
 the safety process they start, so that everything that guards the actuators is in one package; they see the drive
 only through
-:class:`~asyncdonkey.core.runtypes.SafetyHost` (its runs, clock, channels and stop request), never through the
+:class:`SafetyHost` (its runs, clock, channels and stop request), never through the
 ``Drive`` class, and they import no part: an actuator says what it is through its own attributes
 (``safety_route()``, ``failsafe_age_s``, ``stops_motion``, ``attach()``).
 """
@@ -14,22 +14,47 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Protocol
 
+from .activity import LoopActivity
 from .process import GuardedOutput, SafetyProcess, SafetyProcessError, heartbeat_timeout_for
 from .watchdog import ActuatorRuntime, Watchdog, watched
 
 if TYPE_CHECKING:  # types only: the core imports this module
+    from ..clock import Clock
+    from ..core.partrun import PartRun
     from ..core.plan import Entry
-    from ..core.runtypes import SafetyHost
+    from ..memory import Memory
 
-__all__ = ["Recorder", "attach_actuators", "detach_actuators", "start_safety_process"]
+__all__ = ["Recorder", "SafetyHost", "attach_actuators", "detach_actuators", "start_safety_process"]
 
 logger = logging.getLogger("asyncdonkey.loop")
 
 #: ``record(t, origin)``: the command sensed at ``origin`` reached the actuator's output at ``t``
 Recorder = Callable[[float, float], None]
+
+
+class SafetyHost(LoopActivity, Protocol):
+    """A drive as its safety attachment (``asyncdonkey.safety.attach``) sees it: the parts' runs, the clock, the
+    channels' origins, the stop request the safety process may make, and the watchdog and safety process it
+    attaches (and the drive reports on)."""
+
+    @property
+    def runs(self) -> Sequence[PartRun]: ...
+
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def mem(self) -> Memory: ...
+
+    #: set by the attachment: the in-process watchdog (``None``: none runs)
+    watchdog: Watchdog | None
+    #: set by the attachment: the safety process (``None``: none runs)
+    safety_process: SafetyProcess | None
+
+    def request_stop(self, reason: str = ...) -> None: ...
 
 
 async def start_safety_process(

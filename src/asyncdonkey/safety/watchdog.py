@@ -43,7 +43,7 @@ from ..ratelimit import LogThrottle
 
 if TYPE_CHECKING:
     from ..core.plan import Entry
-    from ..core.runtypes import LoopActivity
+    from .activity import LoopActivity
 
 __all__ = ["ActuatorRuntime", "Watchdog"]
 

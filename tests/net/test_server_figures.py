@@ -173,3 +173,16 @@ def test_a_models_calls_are_one_per_frame_at_batch_1_and_one_per_max_batch_chunk
         expected = sum(sizes) if not model.batched else sum(-(-n // max_batch) for n in sizes)
         assert model.calls - calls0 == expected and model.frames - frames0 == sum(sizes)
         assert len(model.call_s) - timed0 == expected
+
+
+def test_a_warm_up_call_is_not_a_model_call_of_the_cars(batchable_models):
+    """A server of a pair calls its model once on a blank frame before it answers (the runtime's first call is
+    slow): that call runs the model but is not counted as one of the cars' calls, frames or call times."""
+    pilot = BatchPilot(MODELS / "sim_pilot.onnx")
+    pilot.warm_up()
+    assert (pilot.calls, pilot.frames, len(pilot.call_s)) == (0, 0, 0)
+    figures = ServerFigures.of(BatchLoop(FrameBatcher(0.005, 0.25, 8), pilot.infer, Answers()), pilot, {})
+    assert figures.model_calls == 0 and figures.call_ms is None
+    # the cars' calls count from the first as before, with the same commands as a pilot that never warmed up
+    assert pilot.infer([FRAME]) == batchable_models[0].infer([FRAME])
+    assert (pilot.calls, pilot.frames, len(pilot.call_s)) == (1, 1, 1)

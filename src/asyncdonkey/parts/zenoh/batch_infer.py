@@ -146,6 +146,12 @@ class BatchPilot:
             out.extend(self._commands(raw, len(chunk)))
         return out
 
+    def warm_up(self) -> None:
+        """One call of the runtime on a blank frame, not counted in ``calls``, ``frames`` or ``call_s``: a runtime's
+        first call allocates and can take many times a normal one, and a server that makes it before it answers
+        (:class:`.PilotServer` in a pair) must not report it as a model call of its cars."""
+        self._run([np.zeros(self.pilot.image_shape, np.uint8)])
+
     def _run(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         if self.kind == "onnx":
             return self._run_onnx(images)

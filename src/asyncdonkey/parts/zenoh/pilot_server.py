@@ -338,6 +338,14 @@ class PilotServer:
         if loop is None or watch is None:
             return
         self._judge()  # the loop's own pulse: a late one means it was away (:class:`.AnswerRule`)
+        self._ask()
+        loop.call_later(max(self.grace_s, 0.1), self._query)
+
+    def _ask(self) -> None:
+        """One liveliness query; its answer is applied unless a token event came while it was out."""
+        loop, watch = self._event_loop, self._watch
+        if loop is None or watch is None:
+            return
         events = self._events
 
         def result(present: bool) -> None:
@@ -347,7 +355,6 @@ class PilotServer:
                 pass
 
         watch.query(result)
-        loop.call_later(max(self.grace_s, 0.1), self._query)
 
     def _queried(self, present: bool, events: int) -> None:
         """A query's answer (on the loop); ignored when a token event came while it was out (the event is newer)."""
@@ -358,13 +365,17 @@ class PilotServer:
 
     async def _warm_up(self) -> None:
         """One model call on a blank frame, off the loop: a runtime's first call allocates and can take many
-        times a normal one, which a server taking over (or taking back) the cars would add to their gap."""
+        times a normal one, which a server taking over (or taking back) the cars would add to their gap. A model
+        with ``warm_up()`` (:meth:`.BatchPilot.warm_up`) makes it without counting it among its cars' calls."""
         shape = self.image_shape
         infer = getattr(self.model, "infer", self.model)
+        warm_up = getattr(self.model, "warm_up", None)
         if shape is None:
             return
         try:
-            if inspect.iscoroutinefunction(infer):
+            if callable(warm_up):
+                await asyncio.get_running_loop().run_in_executor(None, warm_up)
+            elif inspect.iscoroutinefunction(infer):
                 await infer([np.zeros(shape, np.uint8)])
             else:
                 await asyncio.get_running_loop().run_in_executor(None, infer, [np.zeros(shape, np.uint8)])
@@ -382,8 +393,8 @@ class PilotServer:
             pass
 
     def _running_seen(self, present: bool) -> None:
-        """The other server's running token appeared or went (Zenoh's thread): on the loop, and judged again once
-        ``settle_s`` has passed (a relearning server decides then: :class:`.AnswerRule`)."""
+        """The other server's running token appeared or went (Zenoh's thread): on the loop, where a relearning
+        server asks at once what the other does (:class:`.AnswerRule`)."""
         loop = self._event_loop
         if loop is None:
             return
@@ -393,12 +404,13 @@ class PilotServer:
             pass
 
     def _ran(self, present: bool) -> None:
-        rule, loop = self.rule, self._event_loop
-        if rule is None or self._watch is None or loop is None:
+        rule = self.rule
+        if rule is None or self._watch is None:
             return
+        self._events += 1  # a query sent before this was answered from what the session knew then: ignored
         self._apply(rule.running(present, get_clock().now()))
-        if rule.reached_at is not None:
-            loop.call_later(rule.settle_s + 1e-3, self._judge)
+        if rule.reached:
+            self._ask()
 
     def _judge(self, present: bool | None = None) -> None:
         """Apply the pair's rule now (on the loop), after a token event or when the grace ends."""

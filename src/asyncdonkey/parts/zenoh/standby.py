@@ -54,15 +54,15 @@ peers dropped it when its lease ran out, and the other server may have taken ove
 knew says it answers, and its own session learns otherwise only once its peers reach it again. So a server
 whose rule was not consulted for ``away_s`` (2 s; the server consults it every ``grace_s`` and at each answer)
 is undecided again, as at its start: it answers nothing until the other's token appears (then it waits for it
-to go), or the other's running token (``standby``, ``alive``) appears and ``settle_s`` (0.1 s) passes without
-the watched one, or ``grace_s`` passes without either. A query's "absent" does not decide meanwhile: a query
-that runs before the sessions are back is answered from what the session knew before the absence. The running
-token matters for a resumed primary: the standby sees ``alive`` come back and withdraws
-``standby-answering``, often before the primary's session hears of that token at all, so no event of the
-watched token would ever tell the primary; but the ``standby`` token reappears as the sessions reconnect, and
-the standby's answering token, if still there, comes with it. Measured in ``docs/scale-out.md``: a resumed
-primary answers nothing beside the standby, where it otherwise answered the cars' next frames with it for up
-to 0.1 s.
+to go), or a query sent after the other's running token (``standby``, ``alive``) reappeared finds the watched
+one absent, or ``grace_s`` passes without either. A query sent earlier decides nothing: before the sessions are
+back it is answered from what the session knew before the absence (seen: "absent" 5 ms after SIGCONT while the
+standby still answered). The running token matters for a resumed primary: the standby sees ``alive`` come back
+and withdraws ``standby-answering``, often before the primary's session hears of that token at all, so no event
+of the watched token would ever tell the primary; but the ``standby`` token reappears once the sessions have
+reconnected, and a query from then on is answered by the standby's own session. Measured in
+``docs/scale-out.md``: a resumed primary answers nothing beside the standby, where it otherwise answered the
+cars' next frames with it for up to 0.1 s.
 
 :class:`AnswerRule` is the decision alone (tested with fake token events on a controlled clock);
 :class:`RoleWatch` is the Zenoh side (tokens, the liveliness subscriber) feeding it.
@@ -100,8 +100,6 @@ GRACE_S = 1.0
 READY_S = 3.0
 #: a server whose rule was not consulted for this long was away (frozen, suspended) and relearns its pair
 AWAY_S = 2.0
-#: a relearning server decides this long after the other's running token appeared without the watched one
-SETTLE_S = 0.1
 #: the subjects' ids in the server configs of ``zenoh-pair --fleet --standby`` (how a server learns its role)
 PRIMARY_SUBJECT = "pair-primary"
 STANDBY_SUBJECT = "pair-standby"
@@ -216,25 +214,21 @@ class AnswerRule:
     watched token. A server is undecided for ``grace_s`` after ``start`` unless the token appeared: it answers
     from then on while the token is absent. A call (any of them) more than ``away_s`` after the previous one makes
     it undecided again from that moment (the server was away: module docstring): until it decides again a
-    query's absence does not decide, and :meth:`running` (the other's running token appeared) decides once
-    ``settle_s`` passes without the watched token. ``switches`` records every change of the answer, ``(time,
-    answering)``; ``away`` every return from an absence, ``(time, seconds away)``.
+    query's absence decides only once :meth:`running` has said the other's running token reappeared (the caller
+    sends a query then, and ignores the answers of those sent before). ``switches`` records every change of the
+    answer, ``(time, answering)``; ``away`` every return from an absence, ``(time, seconds away)``.
     """
 
-    def __init__(
-        self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf, settle_s: float = SETTLE_S
-    ) -> None:
+    def __init__(self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf) -> None:
         if not (math.isfinite(grace_s) and grace_s >= 0):
             raise ValueError(f"AnswerRule: grace_s must be a number of seconds >= 0, got {grace_s!r}")
         if not (away_s > grace_s):
             raise ValueError(f"AnswerRule: away_s must be longer than grace_s ({grace_s!r} s), got {away_s!r}")
-        if not (math.isfinite(settle_s) and settle_s >= 0):
-            raise ValueError(f"AnswerRule: settle_s must be a number of seconds >= 0, got {settle_s!r}")
         self.start = float(start)
         self.grace_s = float(grace_s)
         self.away_s = float(away_s)
-        self.settle_s = float(settle_s)
-        self.reached_at: float | None = None  # when the other's running token appeared, while relearning
+        #: relearning, the other's running token has reappeared: a query from now on is answered by it
+        self.reached = False
         self.present = False
         self.decided = False
         self.relearning = False
@@ -244,38 +238,38 @@ class AnswerRule:
         self.away: list[tuple[float, float]] = []
 
     def token(self, present: bool, now: float) -> bool:
-        """The watched token appeared (``True``) or went (``False``); returns whether to answer now."""
+        """The watched token appeared (``True``) or went (``False``); returns whether to answer now. Its going
+        decides only a server relearning once the other was :attr:`reached` (before, it may be the closing of
+        the session that was dropped during the absence, not the other's doing)."""
         self._returned(now)
         self.present = bool(present)
-        if present:
+        if present or (self.relearning and self.reached):
             self._decide()  # seen: the other's state is known from now on
         return self.answering(now)
 
     def queried(self, present: bool, now: float, decides_absence: bool) -> bool:
         """The answer of a liveliness query: the token is there or not. Presence decides; absence decides only
         when ``decides_absence`` (a primary, which queries once the cars reach it, long after it dialled its
-        standby; a standby's session may not have reached its primary yet at start, so its grace decides) and
-        the server is not relearning after an absence."""
+        standby; a standby's session may not have reached its primary yet at start, so its grace decides), and,
+        while the server relearns after an absence, only for a query sent once the other was :attr:`reached`."""
         self._returned(now)
         self.present = bool(present)
-        if present or (decides_absence and not self.relearning):
+        if present or (decides_absence and (self.reached or not self.relearning)):
             self._decide()
         return self.answering(now)
 
     def running(self, present: bool, now: float) -> bool:
         """The other server's running token appeared (``True``) or went: while relearning, its appearance says
-        the sessions are back, and the rule decides ``settle_s`` later unless the watched token came with it."""
+        the sessions are back (:attr:`reached`), so that a query sent from then on decides."""
         self._returned(now)
-        if present and self.relearning:
-            self.reached_at = now
+        if self.relearning:
+            self.reached = bool(present)
         return self.answering(now)
 
     def answering(self, now: float) -> bool:
         """Whether to answer at ``now`` (records a switch when the answer changes)."""
         self._returned(now)
-        if not self.decided and (
-            now - self.start >= self.grace_s or (self.reached_at is not None and now - self.reached_at >= self.settle_s)
-        ):
+        if not self.decided and now - self.start >= self.grace_s:
             self._decide()
         answer = self.decided and not self.present
         if answer != self.last:
@@ -286,7 +280,7 @@ class AnswerRule:
     def _decide(self) -> None:
         self.decided = True
         self.relearning = False
-        self.reached_at = None
+        self.reached = False
 
     def _returned(self, now: float) -> None:
         """Undecided again, from ``now``, when the previous call was more than ``away_s`` ago."""
@@ -297,7 +291,7 @@ class AnswerRule:
             self.start = now
             self.decided = False
             self.relearning = True
-            self.reached_at = None
+            self.reached = False
 
 
 class RoleWatch:

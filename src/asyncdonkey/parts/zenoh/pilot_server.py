@@ -343,18 +343,11 @@ class PilotServer:
 
     def _ask(self) -> None:
         """One liveliness query; its answer is applied unless a token event came while it was out."""
-        loop, watch = self._event_loop, self._watch
-        if loop is None or watch is None:
+        watch = self._watch
+        if watch is None:
             return
         events = self._events
-
-        def result(present: bool) -> None:
-            try:
-                loop.call_soon_threadsafe(self._queried, present, events)
-            except RuntimeError:  # the event loop is closed: the server is going away
-                pass
-
-        watch.query(result)
+        watch.query(lambda present: self._to_loop(self._queried, present, events))
 
     def _queried(self, present: bool, events: int) -> None:
         """A query's answer (on the loop); ignored when a token event came while it was out (the event is newer)."""
@@ -382,26 +375,24 @@ class PilotServer:
         except Exception as exc:  # the batches will say so again
             logger.warning("pilot server: the model failed on a blank frame at start (%s)", exc)
 
-    def _token_seen(self, present: bool) -> None:
-        """The other server's token appeared or went (Zenoh's thread): judged on the loop."""
+    def _to_loop(self, fn: Callable[..., None], *args: Any) -> None:
+        """``fn(*args)`` on the server's event loop, from one of Zenoh's threads; nothing once the loop is gone."""
         loop = self._event_loop
         if loop is None:
             return
         try:
-            loop.call_soon_threadsafe(self._judge, present)
+            loop.call_soon_threadsafe(fn, *args)
         except RuntimeError:  # the event loop is closed: the server is going away
             pass
+
+    def _token_seen(self, present: bool) -> None:
+        """The other server's token appeared or went (Zenoh's thread): judged on the loop."""
+        self._to_loop(self._judge, present)
 
     def _running_seen(self, present: bool) -> None:
         """The other server's running token appeared or went (Zenoh's thread): on the loop, where a relearning
         server asks at once what the other does (:class:`.AnswerRule`)."""
-        loop = self._event_loop
-        if loop is None:
-            return
-        try:
-            loop.call_soon_threadsafe(self._ran, present)
-        except RuntimeError:  # the event loop is closed: the server is going away
-            pass
+        self._to_loop(self._ran, present)
 
     def _ran(self, present: bool) -> None:
         rule = self.rule

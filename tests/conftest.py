@@ -241,8 +241,9 @@ def _processes() -> dict[tuple[int, int], tuple[int, bytes]]:
     return found
 
 
-def _descendants() -> set[tuple[int, int]]:
-    """This process's live children, their children, and so on, as ``(pid, start time)``."""
+def _descendants(keep_out: frozenset[tuple[int, int]] = frozenset()) -> set[tuple[int, int]]:
+    """This process's live children, their children, and so on, as ``(pid, start time)``; the trees under the
+    processes in ``keep_out`` are not followed (they are listed themselves, if alive)."""
     procs = _processes()
     ours: set[tuple[int, int]] = set()
     todo = [os.getpid()]
@@ -251,7 +252,8 @@ def _descendants() -> set[tuple[int, int]]:
         for key, (ppid, _) in procs.items():
             if ppid == parent and key not in ours:
                 ours.add(key)
-                todo.append(key[0])
+                if key not in keep_out:
+                    todo.append(key[0])
     return ours
 
 
@@ -266,14 +268,18 @@ def _command_line(pid: int) -> str:
 @pytest.fixture(autouse=True)
 def _no_process_outlives_its_test(request: pytest.FixtureRequest) -> Generator[None, None, None]:
     """After a ``subprocess`` test (and its fixtures, which this one outlasts), kill what it left running and fail
-    it, naming the command lines. Processes of wider-scoped fixtures were already running when it started."""
+    it, naming the command lines.
+
+    Processes of wider-scoped fixtures were already running when it started, and what they start meanwhile is
+    theirs to end: a module's browser starts its renderer, storage and GPU helpers when a page first needs them
+    and keeps them for its own lifetime, so only trees started by the test itself are held to its end."""
     if request.node.get_closest_marker("subprocess") is None:
         yield
         return
-    before = _descendants()
+    before = frozenset(_descendants())
     yield
     deadline = time.monotonic() + LEFTOVER_GRACE_S
-    while (left := _descendants() - before) and time.monotonic() < deadline:
+    while (left := _descendants(keep_out=before) - before) and time.monotonic() < deadline:
         time.sleep(0.02)
     if not left:
         return

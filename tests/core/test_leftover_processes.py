@@ -56,3 +56,58 @@ def test_a_process_left_running_fails_its_test_by_name_and_is_killed(pytester: p
     )
     assert not running(int(pidfile.read_text()))
     assert "test_waits_for_its_process left" not in result.stdout.str()
+
+
+@pytest.mark.subprocess
+def test_what_a_wider_fixtures_process_starts_during_a_test_is_that_fixtures(pytester: pytest.Pytester) -> None:
+    """A module's browser starts helpers when a page first needs them and keeps them: not the test's leftovers."""
+    pidfile = pytester.path / "helper-child"
+    pytester.makeconftest(CONFTEST.read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    subprocess: starts a process\n")
+    helper = (
+        "import subprocess, sys\n"
+        "sys.stdin.readline()\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'])\n"
+        f"open({str(pidfile)!r}, 'w').write(str(child.pid))\n"
+        "sys.stdin.readline()\n"
+        "child.kill(); child.wait()\n"
+    )
+    pytester.makepyfile(
+        f"""
+        import subprocess
+        import sys
+        import time
+        from pathlib import Path
+
+        import pytest
+
+
+        @pytest.fixture(scope="module")
+        def browser_like():
+            proc = subprocess.Popen([sys.executable, "-c", {helper!r}], stdin=subprocess.PIPE, text=True)
+            yield proc
+            proc.stdin.write("end\\n")
+            proc.stdin.close()
+            proc.wait(timeout=30)
+
+
+        @pytest.mark.subprocess
+        def test_asks_the_module_process_for_a_helper(browser_like):
+            browser_like.stdin.write("start a helper\\n")
+            browser_like.stdin.flush()
+            deadline = time.monotonic() + 30
+            while not Path({str(pidfile)!r}).exists() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert Path({str(pidfile)!r}).exists()
+
+
+        @pytest.mark.subprocess
+        def test_leaves_its_own_process(browser_like):
+            subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)  # the test's own"])
+        """
+    )
+    result = pytester.runpytest_subprocess("-p", "no:randomly", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=2, errors=1)
+    assert "test_asks_the_module_process_for_a_helper left" not in result.stdout.str()
+    result.stdout.fnmatch_lines(["*test_leaves_its_own_process left 1 process(es)*the test's own*"])
+    assert not running(int(pidfile.read_text()))  # the module's fixture ended its helper itself

@@ -255,9 +255,16 @@ def test_a_closed_tab_stops_the_car_through_the_failsafe(browser: Any, car: WebC
     wait_until(lambda: car.throttle_pulse() > ZERO_PULSE, what="the tab driving")
     events = car.throttle.failsafe_events
     driver.page.close()  # the tab goes away mid-drive
-    wait_until(lambda: car.throttle_pulse() == ZERO_PULSE, 2, "the throttle at neutral")
-    wait_until(lambda: car.throttle.failsafe_events > events, 2, "the stale-command failsafe to take over")
-    assert car.mem.age("throttle") >= 0.25 and car.ctr.desk.driver is None
+    # one condition, not three in a row: on a loaded machine the failsafe can also fire during a stall just
+    # before the close, and the tab's last command can still land after it
+    wait_until(
+        lambda: car.ctr.desk.driver is None
+        and car.mem.age("throttle") >= 0.25
+        and car.throttle_pulse() == ZERO_PULSE
+        and car.throttle.failsafe_events > events,
+        3,
+        "the tab's last command gone stale and the failsafe holding neutral",
+    )
     driver.close()
 
 

@@ -258,10 +258,12 @@ def test_a_closed_tab_stops_the_car_through_the_failsafe(browser: Any, car: WebC
     # one condition, not three in a row: on a loaded machine the failsafe can also fire during a stall just
     # before the close, and the tab's last command can still land after it
     wait_until(
-        lambda: car.ctr.desk.driver is None
-        and car.mem.age("throttle") >= 0.25
-        and car.throttle_pulse() == ZERO_PULSE
-        and car.throttle.failsafe_events > events,
+        lambda: (
+            car.ctr.desk.driver is None
+            and car.mem.age("throttle") >= 0.25
+            and car.throttle_pulse() == ZERO_PULSE
+            and car.throttle.failsafe_events > events
+        ),
         3,
         "the tab's last command gone stale and the failsafe holding neutral",
     )

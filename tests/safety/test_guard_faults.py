@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 
+from asyncdonkey.safety.process import MAX_RESTARTS
 from asyncdonkey.testing.i2c_models import I2CSimulator, PCA9685Model
 
 from ..waiting import time_when
@@ -230,9 +231,14 @@ def test_a_lost_guard_is_noticed_the_throttle_stopped_and_a_new_guard_started(ch
     assert stop - hang < WINDOW_S + 1.0  # typical 0.2 s; 0.86 s seen with 7 suites running
     report = car.report(15.0)
     sp = report["safety_process"]
-    assert sp["lost"] == 1 and sp["restarts"] == 1, sp
+    # the fault is the first loss; a guard starved past its heartbeat timeout on a loaded machine is also lost
+    # ("frozen", by design: starved and stopped look the same from the car) and restarted, so more may follow
+    first, *more = sp["lost_why"]
+    assert ("exited" if fault == "SIGKILL" else "frozen") in first, (sp, car.err.text())
+    assert all(why.startswith("frozen") for why in more), (sp, car.err.text())
+    assert sp["restarts"] == sp["lost"] <= MAX_RESTARTS, (sp, car.err.text())
     assert car.wait(10) == 0
-    assert "lost 1 times" in car.out.text() and "restarted 1" in car.out.text()
+    assert f"lost {sp['lost']} times" in car.out.text() and f"restarted {sp['restarts']}" in car.out.text()
     throttle.stop()
 
 

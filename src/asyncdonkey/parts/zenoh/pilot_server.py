@@ -201,7 +201,6 @@ class PilotServer:
         self.away_s = away_s
         self._returns = 0  # returns from an absence logged (len(rule.away))
         self._seen: set[str] = set()  # cars whose frames reached this server (a primary waits for them)
-        self._events = 0  # token events seen (a query's answer older than the newest event is ignored)
         #: whether it answers the cars now; :attr:`rule` says when that changed (a pair only)
         self.answering = False
         self.rule: AnswerRule | None = None
@@ -343,18 +342,18 @@ class PilotServer:
 
     def _ask(self) -> None:
         """One liveliness query; its answer is applied unless a token event came while it was out."""
-        watch = self._watch
-        if watch is None:
+        watch, rule = self._watch, self.rule
+        if watch is None or rule is None:
             return
-        events = self._events
-        watch.query(lambda present: self._to_loop(self._queried, present, events))
+        asked = rule.asking()
+        watch.query(lambda present: self._to_loop(self._queried, present, asked))
 
-    def _queried(self, present: bool, events: int) -> None:
-        """A query's answer (on the loop); ignored when a token event came while it was out (the event is newer)."""
+    def _queried(self, present: bool, asked: int) -> None:
+        """A query's answer (on the loop); the rule ignores one an event overtook (:meth:`.AnswerRule.queried`)."""
         rule, role = self.rule, self.role
-        if rule is None or role is None or self._watch is None or events != self._events:
+        if rule is None or role is None or self._watch is None:
             return
-        self._apply(rule.queried(present, get_clock().now(), decides_absence=not role.is_standby))
+        self._apply(rule.queried(present, get_clock().now(), decides_absence=not role.is_standby, asked=asked))
 
     async def _warm_up(self) -> None:
         """One model call on a blank frame, off the loop: a runtime's first call allocates and can take many
@@ -398,7 +397,6 @@ class PilotServer:
         rule = self.rule
         if rule is None or self._watch is None:
             return
-        self._events += 1  # a query sent before this was answered from what the session knew then: ignored
         self._apply(rule.running(present, get_clock().now()))
         if rule.reached:
             self._ask()
@@ -409,8 +407,6 @@ class PilotServer:
         if rule is None or self._watch is None:
             return
         now = get_clock().now()
-        if present is not None:
-            self._events += 1
         self._apply(rule.answering(now) if present is None else rule.token(present, now))
 
     def _apply(self, answer: bool) -> None:

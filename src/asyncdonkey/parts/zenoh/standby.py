@@ -215,8 +215,10 @@ class AnswerRule:
     from then on while the token is absent. A call (any of them) more than ``away_s`` after the previous one makes
     it undecided again from that moment (the server was away: module docstring): until it decides again a
     query's absence decides only once :meth:`running` has said the other's running token reappeared (the caller
-    sends a query then, and ignores the answers of those sent before). ``switches`` records every change of the
-    answer, ``(time, answering)``; ``away`` every return from an absence, ``(time, seconds away)``.
+    sends a query then). A query's answer is stale when a token event came while it was out, or, while relearning,
+    the running token's: the caller takes :meth:`asking` when it sends one and hands it back with the answer.
+    ``switches`` records every change of the answer, ``(time, answering)``; ``away`` every return from an
+    absence, ``(time, seconds away)``.
     """
 
     def __init__(self, start: float, grace_s: float = GRACE_S, away_s: float = math.inf) -> None:
@@ -234,6 +236,8 @@ class AnswerRule:
         self.relearning = False
         self.last = False
         self.consulted = self.start
+        #: events that make an earlier query's answer stale (see :meth:`asking`)
+        self.heard = 0
         self.switches: list[tuple[float, bool]] = []
         self.away: list[tuple[float, float]] = []
 
@@ -242,16 +246,27 @@ class AnswerRule:
         decides only a server relearning once the other was :attr:`reached` (before, it may be the closing of
         the session that was dropped during the absence, not the other's doing)."""
         self._returned(now)
+        self.heard += 1
         self.present = bool(present)
         if present or (self.relearning and self.reached):
             self._decide()  # seen: the other's state is known from now on
         return self.answering(now)
 
-    def queried(self, present: bool, now: float, decides_absence: bool) -> bool:
+    def asking(self) -> int:
+        """A query is being sent: what to hand back to :meth:`queried` with its answer."""
+        return self.heard
+
+    def queried(self, present: bool, now: float, decides_absence: bool, asked: int | None = None) -> bool:
         """The answer of a liveliness query: the token is there or not. Presence decides; absence decides only
         when ``decides_absence`` (a primary, which queries once the cars reach it, long after it dialled its
         standby; a standby's session may not have reached its primary yet at start, so its grace decides), and,
-        while the server relearns after an absence, only for a query sent once the other was :attr:`reached`."""
+        while the server relearns after an absence, only for a query sent once the other was :attr:`reached`.
+        ``asked``: :meth:`asking` when the query was sent; an answer overtaken by an event since is ignored (the
+        event is newer). Only an event about the watched token, or the running token's while relearning (a query
+        sent before it was answered from what the session knew before the absence), overtakes it: the other's
+        running token seen at a primary's start says nothing about what the other does."""
+        if asked is not None and asked != self.heard:
+            return self.answering(now)
         self._returned(now)
         self.present = bool(present)
         if present or (decides_absence and (self.reached or not self.relearning)):
@@ -263,6 +278,7 @@ class AnswerRule:
         the sessions are back (:attr:`reached`), so that a query sent from then on decides."""
         self._returned(now)
         if self.relearning:
+            self.heard += 1
             self.reached = bool(present)
         return self.answering(now)
 
